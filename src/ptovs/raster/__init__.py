@@ -1,0 +1,5 @@
+"""Differentiable Gaussian rasterizer (next issue). Stages import only from here."""
+
+from __future__ import annotations
+
+VERSION = 0

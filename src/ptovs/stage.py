@@ -1,0 +1,455 @@
+"""Stage framework: config resolution, chain keys, caching and the click command.
+
+A stage module defines `NAME`, `VERSION`, a frozen `Config` dataclass, a frozen
+`Inputs` dataclass whose fields are `upstream("<stage>")` artifacts or
+`scene_input()`, and a pure `run(inputs, config)`:
+
+- view stages yield `(view_name, {dataset: array})` (a `None` name writes
+  whole-scene datasets); if `run` takes a `skip` keyword, views already stored by
+  an interrupted run are passed in and must not be yielded again;
+- single stages return `{dataset: array}`.
+
+`stage_command(...)` registers the stage and returns its click command, which
+adds `--scene`, `--data`, `--set` and `--force`, keys the whole chain before any
+work, and streams `run` into a resumable artifact.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import inspect
+import json
+import logging
+import os
+import time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import click
+from tqdm import tqdm
+
+from ptovs.artifacts import Artifact, Store, artifact_key, provenance
+from ptovs.config import build_config, canonical_json, merge, parse_sets
+from ptovs.errors import InputError, MissingInputError
+
+log = logging.getLogger(__name__)
+
+# The chain, in dependency order. A stage exists once its module is registered in
+# ptovs.stages.STAGE_MODULES; `status` lists the ones that exist.
+PIPELINE = (
+    "reconstruct",
+    "render-appearances",
+    "extract-features",
+    "uncertainty",
+    "train-ae",
+    "train-male",
+    "query",
+    "evaluate",
+)
+SCENE = "scene"  # pseudo-stage: the input data itself
+SCENE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """How a scene folder is read (config section `[scene]`)."""
+
+    downscale: int | str = "auto"
+    """Image downscale factor r; "auto" = 1 for synthetic scenes, else 2."""
+    split_file: str = "auto"
+    """"auto" (the single *.tsv in the scene root), "all-train", or a path."""
+    distortion: Literal["refuse", "ignore"] = "refuse"
+    """Non-zero lens distortion: refuse (undistort first) or ignore (authors' code)."""
+
+
+def upstream(stage: str) -> Any:
+    """Declare an `Inputs` field filled with the named stage's artifact."""
+    return field(metadata={"stage": stage})
+
+
+def scene_input() -> Any:
+    """Declare an `Inputs` field filled with the loaded `ptovs.scene.Scene`."""
+    return field(metadata={"stage": SCENE})
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    name: str
+    version: int
+    config_cls: type
+    inputs_cls: type
+    run: Callable[..., Any]
+    kind: Literal["views", "single"]
+    count: Callable[[Any, Any], int] | None = None
+
+    @property
+    def inputs(self) -> dict[str, str]:
+        """{Inputs field: upstream stage name}."""
+        return {
+            f.name: f.metadata["stage"] for f in dataclasses.fields(self.inputs_cls)
+        }
+
+
+REGISTRY: dict[str, StageSpec] = {}
+
+
+def all_stages() -> list[StageSpec]:
+    """Every available stage, pipeline order first (imports the stage modules)."""
+    import importlib
+
+    from ptovs.stages import STAGE_MODULES
+
+    for module in STAGE_MODULES.values():
+        importlib.import_module(module)
+    order = {name: i for i, name in enumerate(PIPELINE)}
+    return sorted(
+        REGISTRY.values(), key=lambda s: (order.get(s.name, len(order)), s.name)
+    )
+
+
+def get_stage(name: str) -> StageSpec:
+    if name not in REGISTRY:
+        import importlib
+
+        from ptovs.stages import STAGE_MODULES
+
+        if name in STAGE_MODULES:
+            importlib.import_module(STAGE_MODULES[name])
+    if name not in REGISTRY:
+        raise InputError(f"unknown stage {name!r}; available: {sorted(REGISTRY)}")
+    return REGISTRY[name]
+
+
+@dataclass
+class RunContext:
+    """What the `ptovs` group resolved: shared by every subcommand of one call."""
+
+    work_dir: Path
+    config: dict[str, Any] = field(default_factory=dict)
+    force: bool = False
+
+    @property
+    def store(self) -> Store:
+        return Store(self.work_dir)
+
+    def section(self, name: str, sets: Iterable[str] = ()) -> dict[str, Any]:
+        """Config section `name` with this command's `--set` items applied."""
+        return merge(self.config.get(name, {}), parse_sets(sets, name).get(name, {}))
+
+
+class SceneRef:
+    """A scene folder plus its `[scene]` options; loads and fingerprints lazily."""
+
+    def __init__(self, name: str, data: Path, config: SceneConfig, work_dir: Path):
+        self.name = name
+        self.data = Path(data)
+        self.config = config
+        self.work_dir = Path(work_dir)
+        self._scene = None
+        self._key: str | None = None
+
+    def load(self) -> Any:
+        if self._scene is None:
+            from ptovs.scene import load_scene
+
+            self._scene = load_scene(
+                self.data,
+                downscale=self.config.downscale,
+                split_file=self.config.split_file,
+                distortion=self.config.distortion,
+            )
+        return self._scene
+
+    def key(self) -> str:
+        """Content key of the scene: its files' sha256 plus the resolved options."""
+        if self._key is None:
+            scene = self.load()
+            fingerprint = fingerprint_files(
+                scene.fingerprint_files(), scene.root, self.cache_path
+            )
+            opts = dict(dataclasses.asdict(self.config), downscale=scene.downscale)
+            if opts["split_file"] not in ("auto", "all-train"):
+                opts["split_file"] = (
+                    "explicit"  # the file's content is in the fingerprint
+                )
+            self._key = artifact_key(SCENE, SCENE_VERSION, opts, {"data": fingerprint})
+        return self._key
+
+    @property
+    def cache_path(self) -> Path:
+        return self.work_dir / self.name / ".fingerprints.json"
+
+
+def fingerprint_files(files: Iterable[Path], root: Path, cache: Path | None) -> str:
+    """sha256 over (relative path, content sha256) of every file.
+
+    File digests are cached by (size, mtime_ns), so a 3,000-image scene is hashed
+    once; a file touched or replaced is hashed again.
+    """
+    root = Path(root).resolve()
+    memo: dict[str, list[Any]] = {}
+    if cache is not None and cache.is_file():
+        try:
+            memo = json.loads(cache.read_text())
+        except (OSError, ValueError):
+            memo = {}
+    records, changed = [], False
+    for path in sorted(Path(p).resolve() for p in files):
+        st = path.stat()
+        try:
+            rel = path.relative_to(root).as_posix()
+        except ValueError:  # e.g. labels beside the scene folder
+            rel = path.relative_to(root.parent).as_posix()
+        hit = memo.get(str(path))
+        if hit and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
+            digest = hit[2]
+        else:
+            h = hashlib.sha256()
+            with path.open("rb") as fh:
+                for block in iter(lambda: fh.read(1 << 20), b""):
+                    h.update(block)
+            digest = h.hexdigest()
+            memo[str(path)] = [st.st_size, st.st_mtime_ns, digest]
+            changed = True
+        records.append(f"{rel}:{digest}")
+    if cache is not None and changed:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        tmp = cache.with_name(cache.name + f".{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(memo))
+        os.replace(tmp, cache)
+    return hashlib.sha256("\n".join(records).encode()).hexdigest()
+
+
+class Chain:
+    """Keys, configs and artifacts of every stage for one scene, computed once."""
+
+    def __init__(
+        self,
+        ctx: RunContext,
+        scene: SceneRef,
+        sets: Mapping[str, Iterable[str]] | None = None,
+    ):
+        self.ctx = ctx
+        self.scene = scene
+        self.sets = dict(sets or {})
+        self._keys: dict[str, str] = {}
+        self._configs: dict[str, Any] = {}
+
+    def config(self, stage: str) -> Any:
+        if stage not in self._configs:
+            spec = get_stage(stage)
+            section = self.ctx.section(stage, self.sets.get(stage, ()))
+            self._configs[stage] = build_config(spec.config_cls, section, stage)
+        return self._configs[stage]
+
+    def upstream_keys(self, stage: str) -> dict[str, str]:
+        spec = get_stage(stage)
+        return {name: self.key(up) for name, up in spec.inputs.items()}
+
+    def key(self, stage: str) -> str:
+        if stage == SCENE:
+            return self.scene.key()
+        if stage not in self._keys:
+            spec = get_stage(stage)
+            self._keys[stage] = artifact_key(
+                spec.name, spec.version, self.config(stage), self.upstream_keys(stage)
+            )
+        return self._keys[stage]
+
+    def hint(self, stage: str) -> str:
+        return f"ptovs {stage} --scene {self.scene.name} --data {self.scene.data}"
+
+    def inputs(self, stage: str) -> Any:
+        """The stage's `Inputs`, with every upstream artifact verified and opened."""
+        spec = get_stage(stage)
+        values = {}
+        for name, up in spec.inputs.items():
+            if up == SCENE:
+                values[name] = self.scene.load()
+                continue
+            key = self.key(up)
+            art = self.ctx.store.lookup(self.scene.name, up, key)
+            if art is None:
+                raise MissingInputError(
+                    f"no {up} artifact for {self.scene.name} (key {key[:12]}); "
+                    f"run: {self.hint(up)}"
+                )
+            values[name] = art
+        return spec.inputs_cls(**values)
+
+    def state(self, stage: str) -> tuple[str, str]:
+        """(state, detail) for `ptovs status`: done, partial, missing or stale."""
+        store, key = self.ctx.store, self.key(stage)
+        if store.exists(self.scene.name, stage, key):
+            return "done", str(store.path(self.scene.name, stage, key))
+        n = store.partial_views(self.scene.name, stage, key)
+        if n:
+            return "partial", f"{n} views stored; rerun to resume"
+        others = store.others(self.scene.name, stage, key)
+        if others:
+            old = others[0]
+            changed = [
+                k
+                for k, v in self.upstream_keys(stage).items()
+                if old.inputs.get(k) != v
+            ]
+            why = (
+                f"upstream changed ({', '.join(changed)})"
+                if changed
+                else "config or version changed"
+            )
+            for art in others:
+                art.close()
+            return "stale", f"{why}; run: {self.hint(stage)}"
+        return "missing", f"run: {self.hint(stage)}"
+
+
+def execute(chain: Chain, stage: str, *, force: bool = False) -> Artifact:
+    """Run one stage for the chain's scene, or return its cached artifact."""
+    spec = get_stage(stage)
+    store, scene = chain.ctx.store, chain.scene.name
+    key = chain.key(stage)
+    config = chain.config(stage)
+    log.info("%s %s: config %s", stage, key[:12], canonical_json(config))
+    with store.lock(scene, stage, key):
+        cached = store.lookup(scene, stage, key)
+        if cached is not None and not force:
+            log.info(
+                "cache hit: %s for %s (key %s), nothing to do", stage, scene, key[:12]
+            )
+            return cached
+        if cached is not None:
+            cached.close()
+            os.remove(cached.path)
+            log.info("--force: recomputing %s for %s", stage, scene)
+        inputs = chain.inputs(stage)
+        attrs = dict(
+            provenance(),
+            version=spec.version,
+            config_json=canonical_json(config),
+            inputs_json=canonical_json(chain.upstream_keys(stage)),
+            scene=scene,
+        )
+        writer = store.writer(scene, stage, key, attrs)
+        if force:
+            writer.discard()
+        t0 = time.perf_counter()
+        if spec.kind == "views":
+            done = writer.done_views()
+            kwargs = {}
+            if done:
+                log.info("resuming %s: %d views already stored", stage, len(done))
+                if "skip" in inspect.signature(spec.run).parameters:
+                    kwargs["skip"] = frozenset(done)
+            total = spec.count(inputs, config) if spec.count else None
+            bar = tqdm(
+                total=total,
+                initial=len(done),
+                desc=f"{stage} {scene}",
+                unit="view",
+                disable=None,
+                leave=False,
+            )
+            with bar:
+                for name, datasets in spec.run(inputs, config, **kwargs):
+                    if name is None:
+                        writer.write_root(datasets)
+                    elif name not in done:
+                        writer.write_view(name, datasets)
+                        bar.update(1)
+        else:
+            result = spec.run(inputs, config)
+            writer.write_root(result)
+        elapsed = time.perf_counter() - t0
+        art = writer.finish(
+            {"timings_json": canonical_json({"run_s": round(elapsed, 3)})}
+        )
+        log.info("wrote %s (%s, %.1f s)", art.path, stage, elapsed)
+        return art
+
+
+def scene_options(f: Callable) -> Callable:
+    f = click.option(
+        "--data",
+        type=click.Path(path_type=Path),
+        default=None,
+        help="Scene folder (default: data/<scene>, or $PTOVS_DATA/<scene>).",
+    )(f)
+    f = click.option(
+        "--scene",
+        "scene_name",
+        default=None,
+        help="Scene name (default: the --data folder's name).",
+    )(f)
+    return f
+
+
+def resolve_scene(
+    ctx: RunContext, scene_name: str | None, data: Path | None, sets: Iterable[str] = ()
+) -> SceneRef:
+    if scene_name is None and data is None:
+        raise click.UsageError("give --scene NAME and/or --data FOLDER")
+    if data is None:
+        data = Path(os.environ.get("PTOVS_DATA", "data")) / scene_name
+    if scene_name is None:
+        scene_name = Path(data).resolve().name
+    if not Path(data).is_dir():
+        raise MissingInputError(
+            f"scene folder {data} does not exist; pass --data pointing at a scene "
+            "(PhotoTourism: <scene>/dense/images + dense/sparse; COLMAP: images/ + sparse/0), "
+            "or make one with: ptovs synth-scene data --preset tiny"
+        )
+    section = ctx.section("scene", sets)
+    config = build_config(SceneConfig, section, "scene")
+    return SceneRef(scene_name, Path(data), config, ctx.work_dir)
+
+
+def stage_command(
+    name: str,
+    version: int,
+    config_cls: type,
+    inputs_cls: type,
+    run: Callable[..., Any],
+    *,
+    kind: Literal["views", "single"] = "views",
+    count: Callable[[Any, Any], int] | None = None,
+    help: str | None = None,
+) -> click.Command:
+    """Register a stage and build its click command."""
+    REGISTRY[name] = StageSpec(name, version, config_cls, inputs_cls, run, kind, count)
+    fields = "\n".join(
+        f"  {f.name} = {f.default!r}" for f in dataclasses.fields(config_cls)
+    )
+    doc = (help or (inspect.getmodule(run).__doc__ or name)).strip()
+    doc += f"\n\n\b\nConfig keys ([{name}] in --config, or --set key=value):\n{fields}"
+
+    @click.command(name=name, help=doc)
+    @scene_options
+    @click.option(
+        "--set",
+        "sets",
+        multiple=True,
+        metavar="KEY=VALUE",
+        help=f"Override a [{name}] config value (repeatable).",
+    )
+    @click.option(
+        "--force", is_flag=True, help="Recompute even if the artifact exists."
+    )
+    @click.pass_obj
+    def command(
+        obj: RunContext,
+        scene_name: str | None,
+        data: Path | None,
+        sets: tuple[str, ...],
+        force: bool,
+    ) -> None:
+        ref = resolve_scene(obj, scene_name, data)
+        chain = Chain(obj, ref, {name: sets})
+        art = execute(chain, name, force=force or obj.force)
+        click.echo(f"{name}: {art.path}")
+        art.close()
+
+    return command

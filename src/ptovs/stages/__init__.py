@@ -1,0 +1,10 @@
+"""Pipeline stages, one module per subcommand.
+
+`STAGE_MODULES` maps each implemented stage's subcommand to its module; the CLI
+imports a module only when its command runs (or for `ptovs status`). A stage is
+added here when it exists, never before.
+"""
+
+from __future__ import annotations
+
+STAGE_MODULES: dict[str, str] = {}
