@@ -173,7 +173,7 @@ def provenance() -> dict[str, str]:
         format=FORMAT,
         ptovs_version=__version__,
         git_sha=git_sha(),
-        torch_version=torch.__version__,
+        torch_version=str(torch.__version__),
         numpy_version=np.__version__,
         h5py_version=h5py.__version__,
         created_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
@@ -367,7 +367,8 @@ class ArtifactWriter:
             attrs["n_views"] = len(self.done_views())
             attrs["data_sha256"] = _combined(records)
             for k, v in attrs.items():
-                out.attrs[k] = v
+                # str subclasses (torch's TorchVersion) would become numpy '<U' arrays
+                out.attrs[k] = str(v) if isinstance(v, str) else v
             out.attrs["complete"] = True
         _fsync_file(tmp)
         os.replace(tmp, self.final)

@@ -1,0 +1,216 @@
+"""The stage framework through the real CLI: cache hits, --force, keys along the
+chain, status, corruption, killed processes, resume and concurrent runs."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+import toy_stages
+from ptovs.cli import main as cli
+
+TOY = Path(toy_stages.__file__)
+
+
+@pytest.fixture(autouse=True)
+def _toy_commands():
+    cli.add_command(toy_stages.views_command)
+    cli.add_command(toy_stages.sum_command)
+    yield
+
+
+@pytest.fixture
+def env(tmp_path: Path, scene_copy: Path, monkeypatch: pytest.MonkeyPatch):
+    log = tmp_path / "toy.log"
+    monkeypatch.setenv("TOY_LOG", str(log))
+    work = tmp_path / "work"
+
+    def invoke(*args: str, ok: bool = True):
+        result = CliRunner().invoke(cli, ["--work-dir", str(work), *args])
+        if ok:
+            assert result.exit_code == 0, result.output + repr(result.exception)
+        return result
+
+    def calls() -> list[str]:
+        return log.read_text().splitlines() if log.exists() else []
+
+    return dict(invoke=invoke, calls=calls, work=work, data=scene_copy, log=log)
+
+
+def _h5(work: Path, stage: str) -> list[Path]:
+    return sorted((work / "tiny_s0" / stage).glob("*.h5"))
+
+
+def test_rerun_is_a_cache_hit_and_force_recomputes(env):
+    invoke, calls, data = env["invoke"], env["calls"], str(env["data"])
+    invoke("toy-views", "--data", data)
+    n_views = len(calls())
+    assert n_views >= 10  # the tiny preset has ~12 train views
+    first = _h5(env["work"], "toy-views")
+    assert len(first) == 1
+    mtime = first[0].stat().st_mtime_ns
+    r = invoke("toy-views", "--data", data)
+    assert "cache hit" in r.output
+    assert len(calls()) == n_views  # no work done
+    assert first[0].stat().st_mtime_ns == mtime
+    invoke("toy-views", "--data", data, "--force")
+    assert len(calls()) == 2 * n_views
+    invoke("--force", "toy-views", "--data", data)  # the group-level flag too
+    assert len(calls()) == 3 * n_views
+    assert _h5(env["work"], "toy-views") == first  # same key, same file
+
+
+def test_config_and_upstream_changes_give_new_keys(env):
+    invoke, calls, data = env["invoke"], env["calls"], str(env["data"])
+    invoke("toy-views", "--data", data)
+    invoke("toy-sum", "--data", data)
+    (sum1,) = _h5(env["work"], "toy-sum")
+    invoke("toy-sum", "--data", data, "--set", "scale=2")  # config → new key
+    assert len(_h5(env["work"], "toy-sum")) == 2
+    # upstream config change → new toy-views key → new toy-sum key
+    r = invoke("toy-sum", "--data", data, "--set", "scale=1", ok=False)
+    assert r.exit_code == 0  # same as the first: cache hit
+    invoke("--set", "toy-views.gain=3", "toy-views", "--data", data)
+    r = invoke("--set", "toy-views.gain=3", "toy-sum", "--data", data)
+    assert len(_h5(env["work"], "toy-sum")) == 3
+    assert calls().count("sum") == 3
+
+
+def test_missing_upstream_names_the_fix(env):
+    r = env["invoke"]("toy-sum", "--data", str(env["data"]), ok=False)
+    assert r.exit_code != 0
+    assert "no toy-views artifact for tiny_s0" in r.output
+    assert "run: ptovs toy-views --scene tiny_s0" in r.output
+    assert "Traceback" not in r.output
+
+
+def test_bad_config_is_a_clear_error(env, tmp_path: Path):
+    r = env["invoke"](
+        "toy-views", "--data", str(env["data"]), "--set", "gian=2", ok=False
+    )
+    assert r.exit_code == 1 and "unknown key" in r.output and "gain" in r.output
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[toy-views\ngain=")
+    r = env["invoke"](
+        "--config", str(bad), "toy-views", "--data", str(env["data"]), ok=False
+    )
+    assert r.exit_code == 1 and "bad.toml" in r.output and "TOML" in r.output
+    r = env["invoke"]("toy-views", "--data", str(tmp_path / "nowhere"), ok=False)
+    assert r.exit_code == 1 and "nowhere" in r.output and "synth-scene" in r.output
+
+
+def test_status_reports_done_missing_stale(env):
+    invoke, data = env["invoke"], str(env["data"])
+    r = invoke("status", "--data", data)
+    assert "toy-views" in r.output and "missing" in r.output
+    invoke("toy-views", "--data", data)
+    invoke("toy-sum", "--data", data)
+    lines = {
+        ln.split()[0]: ln
+        for ln in invoke("status", "--data", data).output.splitlines()
+        if ln.strip().startswith("toy-")
+    }
+    assert "done" in lines["toy-views"] and "done" in lines["toy-sum"]
+    r = invoke("--set", "toy-views.gain=2", "status", "--data", data)
+    lines = {
+        ln.split()[0]: ln
+        for ln in r.output.splitlines()
+        if ln.strip().startswith("toy-")
+    }
+    assert "stale" in lines["toy-views"] and "config" in lines["toy-views"]
+    assert (
+        "stale" in lines["toy-sum"] and "upstream changed (views)" in lines["toy-sum"]
+    )
+    # changing the scene's data changes every key downstream of it
+    img = sorted((env["data"] / "dense" / "images").glob("*.jpg"))[0]
+    img.write_bytes(img.read_bytes() + b"\0")  # JPEG decoders ignore trailing bytes
+    lines = {
+        ln.split()[0]: ln
+        for ln in invoke("status", "--data", data).output.splitlines()
+        if ln.strip().startswith("toy-")
+    }
+    assert (
+        "stale" in lines["toy-views"]
+        and "upstream changed (scene)" in lines["toy-views"]
+    )
+
+
+def test_corrupt_artifact_is_recomputed(env):
+    invoke, calls, data = env["invoke"], env["calls"], str(env["data"])
+    invoke("toy-views", "--data", data)
+    n = len(calls())
+    (path,) = _h5(env["work"], "toy-views")
+    raw = path.read_bytes()
+    path.write_bytes(raw[: len(raw) * 2 // 3])  # truncated
+    r = invoke("toy-views", "--data", data)
+    assert "cache hit" not in r.output and len(calls()) == 2 * n
+    assert path.with_name(path.name + ".corrupt").exists()
+    assert "cache hit" in invoke("toy-views", "--data", data).output
+
+
+def _spawn(env, *args: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, str(TOY), "--work-dir", str(env["work"]), *args],
+        env={**os.environ, "TOY_LOG": str(env["log"])},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+def test_killed_run_leaves_no_valid_artifact_and_resumes(env):
+    invoke, calls, data = env["invoke"], env["calls"], str(env["data"])
+    proc = _spawn(env, "toy-views", "--data", data, "--set", "sleep=0.3")
+    deadline = time.time() + 60
+    while len(calls()) < 4 and time.time() < deadline:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)  # no chance to clean up
+    proc.wait()
+    done_before = calls()
+    assert len(done_before) >= 4
+    assert _h5(env["work"], "toy-views") == []  # nothing final, nothing valid
+    status = invoke("--set", "toy-views.sleep=0.3", "status", "--data", data).output
+    assert "partial" in status
+    invoke("--set", "toy-views.sleep=0.3", "toy-views", "--data", data)
+    after = calls()[len(done_before) :]
+    n_train = sum(
+        1
+        for ln in (env["data"] / "tiny.tsv").read_text().splitlines()
+        if "\ttrain\t" in ln
+    )
+    # only the views not yet stored are computed again (the one in flight at the
+    # kill may or may not have been stored)
+    assert n_train - len(done_before) <= len(after) <= n_train - len(done_before) + 1
+    assert len(set(after) | set(done_before)) == n_train
+    (path,) = _h5(env["work"], "toy-views")
+    from ptovs.artifacts import Artifact
+
+    with Artifact(path) as art:
+        assert len(art.names()) == n_train
+
+
+def test_concurrent_runs_do_not_corrupt(env):
+    data = str(env["data"])
+    procs = [
+        _spawn(env, "toy-views", "--data", data, "--set", "sleep=0.05")
+        for _ in range(2)
+    ]
+    outs = [p.communicate(timeout=120)[0] for p in procs]
+    assert all(p.returncode == 0 for p in procs), outs
+    assert (
+        sum("cache hit" in o for o in outs) == 1
+    )  # one computed, one waited and reused
+    names = [c for c in env["calls"]()]
+    assert len(names) == len(set(names))  # no view computed twice
+    (path,) = _h5(env["work"], "toy-views")
+    from ptovs.artifacts import Artifact
+
+    with Artifact(path) as art:
+        assert len(art.names()) == len(names)
