@@ -39,7 +39,7 @@ format: setup
 
 bench: setup
 	$(BIN)/python bench/synth_timing.py
-	$(BIN)/python bench/encoder_calibration.py
+	$(BIN)/python bench/encoder_calibration.py --seeds 0 1 2 --out $(WORK)/synthetic
 
 scenes: $(SCENES)
 $(SCENES): setup

@@ -1,0 +1,761 @@
+"""Presets and the on-disk layout of a synthetic PT-OVS scene (SYNTHETIC.md).
+
+`generate_scene` writes, image by image (memory stays bounded for `scale`):
+
+    out/<name>/dense/images/<stem>.jpg        JPEG q95, sizes vary
+    out/<name>/dense/sparse/                  COLMAP model (pycolmap, binary)
+    out/<name>/<preset>.tsv                   split file
+    out/label/<name>/<stem>.json|.jpg         ISAT labels of the evaluation views
+    out/<name>/synthetic/vocabulary.json      for the stand-in encoder only
+    out/<name>/synthetic/truth/               cameras.json, parts.json, points3D.npz,
+                                              <stem>.npz (part_id, transient, depth)
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from ptovs.synthetic.world import (
+    DISTRACTORS,
+    Appearance,
+    Billboard,
+    Camera,
+    View,
+    World,
+    build_world,
+    cast,
+    neutral_appearance,
+    part_swatch,
+    random_texture,
+    render,
+    render_truth,
+    sample_appearance,
+    sample_camera,
+    sample_transients,
+    screen_boxes,
+    sky_swatch,
+    texture_albedo,
+)
+
+logger = logging.getLogger(__name__)
+
+TRUTH_VERSION = 1
+# q95 without chroma subsampling: at ~96 px, 4:2:0 visibly smears part colours
+_JPEG = [
+    cv2.IMWRITE_JPEG_QUALITY,
+    95,
+    cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
+    cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444,
+]
+_TRACK_DEPTH_RTOL = 0.01  # a track element's pixel-centre depth is within 1% of z
+
+
+@dataclass(frozen=True)
+class Preset:
+    """Size of a generated scene."""
+
+    n_train: int
+    n_test: int
+    n_eval: int
+    long_side: tuple[int, int]  # range of the image's long side, pixels
+    n_parts: tuple[int, int]  # range
+    n_queries: tuple[int, int]  # range, distractor not counted
+    aa: int  # samples per pixel (1 or 5)
+    points_per_image: int
+    track_keep: float  # chance to keep a visible observation in a track
+    swatch_px: int  # resolution the vocabulary swatches are rendered at
+    max_cover: float = 0.4  # largest transient coverage of an image
+
+
+PRESETS: dict[str, Preset] = {
+    "tiny": Preset(
+        n_train=12,
+        n_test=1,
+        n_eval=2,
+        long_side=(88, 104),
+        n_parts=(3, 3),
+        n_queries=(2, 2),
+        aa=5,
+        points_per_image=60,
+        track_keep=1.0,
+        swatch_px=32,
+    ),
+    "bench": Preset(
+        n_train=80,
+        n_test=8,
+        n_eval=12,
+        long_side=(240, 400),
+        n_parts=(6, 8),
+        n_queries=(3, 5),
+        aa=5,
+        points_per_image=120,
+        track_keep=1.0,
+        swatch_px=96,
+    ),
+    "scale": Preset(
+        n_train=3000,
+        n_test=60,
+        n_eval=4,
+        long_side=(60, 68),
+        n_parts=(6, 8),
+        n_queries=(3, 5),
+        aa=1,
+        points_per_image=8,
+        track_keep=0.02,
+        swatch_px=24,
+    ),
+}
+
+
+def _rng(seed: int, *stream: int) -> np.random.Generator:
+    return np.random.default_rng([seed, *stream])
+
+
+def _min_px(cam: Camera, frac: float, floor: int) -> int:
+    return max(floor, int(frac * cam.width * cam.height))
+
+
+# ------------------------------------------------------------------- labels --
+
+
+def _splice_holes(outer: np.ndarray, holes: list[np.ndarray]) -> np.ndarray:
+    """One polygon for a region with holes: each hole joined by a zero-width bridge.
+
+    cv2.fillPoly fills with the even-odd rule, so the bridged hole stays empty.
+    """
+    poly = outer
+    for h in holes:
+        d = ((poly[:, None, :].astype(np.int64) - h[None, :, :]) ** 2).sum(-1)
+        a, b = np.unravel_index(int(np.argmin(d)), d.shape)
+        hh = np.roll(h, -b, axis=0)
+        poly = np.concatenate([poly[: a + 1], hh, hh[:1], poly[a:]], axis=0)
+    return poly
+
+
+def mask_polygons(mask: np.ndarray) -> list[np.ndarray]:
+    """One polygon per 8-connected component of a mask (holes bridged in).
+
+    Args:
+        mask: [H, W] bool.
+
+    Returns:
+        int32 polygons [n, 2] of (x, y) vertices; filling them all with
+        cv2.fillPoly at [H, W] reproduces the mask.
+    """
+    contours, hier = cv2.findContours(
+        mask.astype(np.uint8), cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE
+    )
+    if not contours:
+        return []
+    hier = hier[0]
+    out = []
+    for k, c in enumerate(contours):
+        if hier[k][3] != -1:
+            continue
+        holes = [contours[j][:, 0, :] for j in range(len(contours)) if hier[j][3] == k]
+        out.append(_splice_holes(c[:, 0, :], holes).astype(np.int32))
+    return out
+
+
+def isat_label(
+    part_id: np.ndarray,  # [H, W] int16
+    queries: dict[str, list[int]],
+    name: str,
+    folder: str,
+    min_px: int,
+) -> dict:
+    """ISAT JSON (PAPER_SPEC 1.2) of one evaluation image from its part-id map.
+
+    Args:
+        part_id: truth part ids, [H, W].
+        queries: query phrase -> part ids it covers.
+        name: the image file name ("<stem>.jpg").
+        folder: the value of info.folder.
+        min_px: a query with fewer pixels is left out of this image.
+
+    Returns:
+        The label dict; categories are the query strings verbatim.
+    """
+    H, W = part_id.shape
+    objects = []
+    for group, (query, pids) in enumerate(queries.items(), start=1):
+        mask = np.isin(part_id, pids)
+        if mask.sum() < min_px:
+            continue
+        for poly in mask_polygons(mask):
+            objects.append(
+                {
+                    "category": query,
+                    "group": group,
+                    "segmentation": poly.tolist(),
+                    "area": float(cv2.contourArea(poly)),
+                    "layer": float(len(objects) + 1),
+                    "bbox": [
+                        int(poly[:, 0].min()),
+                        int(poly[:, 1].min()),
+                        int(poly[:, 0].max()),
+                        int(poly[:, 1].max()),
+                    ],
+                    "iscrowd": False,
+                    "note": "",
+                }
+            )
+    info = {
+        "description": "ISAT",
+        "folder": folder,
+        "name": name,
+        "width": int(W),
+        "height": int(H),
+        "depth": 3,
+        "note": "",
+    }
+    return {"info": info, "objects": objects}
+
+
+def fill_label(label: dict) -> dict[str, np.ndarray]:
+    """Category -> [H, W] bool mask, filled as the evaluation reads ISAT files."""
+    H, W = label["info"]["height"], label["info"]["width"]
+    out: dict[str, np.ndarray] = {}
+    for obj in label["objects"]:
+        m = out.setdefault(obj["category"], np.zeros((H, W), np.uint8))
+        cv2.fillPoly(m, [np.asarray(obj["segmentation"], np.int32)], 1)
+    return {k: v.astype(bool) for k, v in out.items()}
+
+
+# ------------------------------------------------------------------- points --
+
+
+def clean_albedo(world: World, part_id: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Display-space albedo [N, 3] of the clean texture at surface points [N, 3]."""
+    out = np.zeros((len(p), 3))
+    for part in world.parts:
+        sel = part_id == part.id
+        if sel.any():
+            out[sel] = texture_albedo(part.texture, p[sel])
+    sel = part_id < 0
+    if sel.any():
+        out[sel] = texture_albedo(world.ground, p[sel])
+    return out
+
+
+def _sample_points(
+    rng: np.random.Generator, world: World, cam: Camera, view: View, k: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """k surface points seen at pixel centres of a view: xyz, part id, pixel (i, j)."""
+    H, W = view.depth.shape
+    ok = np.isfinite(view.depth) & ~view.transient
+    # ground points only near the landmark
+    C = cam.centre
+    jj, ii = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    d = cam.ray_dirs(jj, ii)
+    xyz = C + np.where(ok, view.depth, 0.0)[..., None] * d
+    near = np.hypot(xyz[..., 0] - world.center[0], xyz[..., 1] - world.center[1])
+    ground_ok = ok & (view.part_id < 0) & (near < 1.5 * world.radius)
+    land = np.flatnonzero(ok & (view.part_id >= 0))
+    grd = np.flatnonzero(ground_ok)
+    n_land = min(len(land), int(round(0.75 * k)))
+    n_grd = min(len(grd), k - n_land)
+    pick = np.concatenate(
+        [
+            rng.choice(land, n_land, replace=False) if n_land else land[:0],
+            rng.choice(grd, n_grd, replace=False) if n_grd else grd[:0],
+        ]
+    )
+    pick.sort()
+    i, j = np.divmod(pick, W)
+    d0 = cam.ray_dirs(j + 0.5, i + 0.5)
+    # the stored depth is float32: cast again to put the point on the surface
+    t, prim, _ = cast(world, C, d0)
+    pts = C + t[:, None] * d0
+    return pts, world.part_of(prim), np.stack([i, j], 1)
+
+
+def _uv_cands(world: World, cam: Camera, uv: np.ndarray) -> list[np.ndarray]:
+    out = []
+    for b in screen_boxes(world, cam):
+        if b is None:
+            out.append(np.zeros(0, np.int64))
+            continue
+        i0, i1, j0, j1 = b
+        sel = (uv[:, 0] >= j0) & (uv[:, 0] < j1) & (uv[:, 1] >= i0) & (uv[:, 1] < i1)
+        out.append(np.flatnonzero(sel))
+    return out
+
+
+def _observations(
+    world: World,
+    cam: Camera,
+    billboards: list[Billboard],
+    xyz: np.ndarray,
+    idx: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Which of the points xyz[idx] a camera sees cleanly, and their projections.
+
+    A point is observed when nothing (landmark, ground or transient) lies between
+    it and the camera, and the truth depth at the pixel centre it projects to is
+    within 1% of its depth (no silhouette edge in between).
+    """
+    if len(idx) == 0:
+        return idx, np.zeros((0, 2))
+    X = xyz[idx]
+    uv, z = cam.project(X)
+    C = cam.centre
+    d = X - C  # t = 1 at the point
+    t, _, _ = cast(world, C, d, _uv_cands(world, cam, uv))
+    vis = t >= 1.0 - 1e-6
+    for bb in billboards:
+        tb, _ = bb.intersect(C, d)
+        vis &= tb >= 1.0
+    pc = np.floor(uv) + 0.5
+    dc = cam.ray_dirs(pc[:, 0], pc[:, 1])
+    tc, _, _ = cast(world, C, dc, _uv_cands(world, cam, pc))
+    for bb in billboards:
+        tb, _ = bb.intersect(C, dc)
+        vis &= tb >= tc
+    vis &= np.abs(tc - z) <= _TRACK_DEPTH_RTOL * z
+    return idx[vis], uv[vis]
+
+
+# --------------------------------------------------------------- vocabulary --
+
+
+def scene_vocabulary(world: World, preset: Preset, distractors: list[str]) -> dict:
+    """The stand-in encoder's vocabulary: phrase -> canonical swatch description."""
+    from ptovs.encoders.synthetic import generic_vocabulary
+
+    phrases: dict[str, dict] = {}
+    for part in world.parts:
+        sw = part_swatch(world, part, preset.swatch_px)
+        phrases[part.query] = sw
+        phrases.setdefault(part.name.title(), sw)
+    phrases["sky"] = sky_swatch()
+    ground = {
+        "kind": "texture",
+        "texture": world.ground.to_dict(),
+        "origin": [0.0, 0.0, 0.0],
+        "e1": [1.0, 0.0, 0.0],
+        "e2": [0.0, 1.0, 0.0],
+        "extent": 6.0,
+        "light": part_swatch(world, world.parts[0], 1)["light"],
+        "gamma": 2.2,
+        "render_px": preset.swatch_px,
+    }
+    phrases["ground"] = ground
+    # a distractor looks like something real that is not in the scene
+    for k, phrase in enumerate(distractors):
+        rng = np.random.default_rng(
+            [int.from_bytes(phrase.encode()[:8].ljust(8, b"\0"), "little"), k]
+        )
+        tex = random_texture(rng, 3.0)
+        phrases[phrase] = dict(
+            ground, texture=tex.to_dict(), e2=[0.0, 0.0, -1.0], extent=3.0
+        )
+    return {
+        "version": 1,
+        "phrases": phrases,
+        "generic": generic_vocabulary(sky=phrases["sky"], ground=ground),
+    }
+
+
+# ---------------------------------------------------------------- planning --
+
+
+def _choose_queries_and_eval(
+    rng: np.random.Generator,
+    world: World,
+    preset: Preset,
+    cand: list[int],
+    cams: list[Camera],
+) -> tuple[list[int], list[int]]:
+    """Query part ids and evaluation views, from a truth-only pass over candidates."""
+    counts = {}
+    for i in cand:
+        pid, _ = render_truth(world, cams[i])
+        m = _min_px(cams[i], 0.01, 12)
+        counts[i] = {p.id: int((pid == p.id).sum()) >= m for p in world.parts}
+    n_q = int(rng.integers(preset.n_queries[0], preset.n_queries[1] + 1))
+    seen = {p.id: sum(counts[i][p.id] for i in cand) for p in world.parts}
+    order = sorted(
+        (p.id for p in world.parts if p.name != "wall"),
+        key=lambda k: (-min(seen[k], 3), rng.random()),
+    )
+    queries = [k for k in order if seen[k] > 0][:n_q]
+    if len(queries) < n_q and seen[0] > 0:  # the wall only when nothing else is seen
+        queries.append(0)
+    if not queries:
+        raise RuntimeError("no part is visible in any evaluation candidate")
+    queries.sort()
+    chosen: list[int] = []
+    for q in queries:  # every query gets at least one evaluation view
+        for i in cand:
+            if counts[i][q] and i not in chosen:
+                chosen.append(i)
+                break
+    score = sorted(cand, key=lambda i: -sum(counts[i][q] for q in queries))
+    for i in score:
+        if len(chosen) >= preset.n_eval:
+            break
+        if i not in chosen and any(counts[i][q] for q in queries):
+            chosen.append(i)
+    return queries, sorted(chosen[: max(preset.n_eval, len(queries))])
+
+
+def _prepare_out(out: Path, name: str) -> tuple[Path, Path]:
+    scene = out / name
+    label = out / "label" / name
+    if scene.exists() and any(scene.iterdir()):
+        if not (scene / "synthetic" / "truth").is_dir():
+            raise FileExistsError(
+                f"{scene} exists and is not a synthetic scene; refusing to overwrite"
+            )
+        shutil.rmtree(scene)
+    if label.exists():
+        shutil.rmtree(label)
+    for p in (
+        scene / "dense" / "images",
+        scene / "dense" / "sparse",
+        scene / "synthetic" / "truth",
+        label,
+    ):
+        p.mkdir(parents=True, exist_ok=True)
+    return scene, label
+
+
+def _save_npz(path: Path, **arrays: np.ndarray) -> None:
+    """np.savez_compressed with fixed zip timestamps: byte-identical reruns."""
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for key, arr in arrays.items():
+            info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            with zf.open(info, "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, np.asanyarray(arr), allow_pickle=False)
+
+
+def _write_json(path: Path, obj) -> None:
+    path.write_text(json.dumps(obj, indent=1) + "\n")
+
+
+# ------------------------------------------------------------------ generate --
+
+
+def generate_scene(
+    out: Path,
+    preset: str = "tiny",
+    seed: int = 0,
+    name: str | None = None,
+    progress: bool = True,
+) -> Path:
+    """Generate a synthetic landmark scene in PT-OVS layout.
+
+    Deterministic for a given (preset, seed): identical truth and images. An
+    existing synthetic scene of the same name is replaced.
+
+    Args:
+        out: the data root (the scene goes to out/<name>, labels to out/label/<name>).
+        preset: one of PRESETS.
+        seed: a new seed is a new landmark, new cameras and new appearances.
+        name: scene folder name; default f"{preset}_s{seed}".
+        progress: show a tqdm bar over images.
+
+    Returns:
+        The scene directory out/<name>.
+    """
+    import pycolmap
+
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose from {sorted(PRESETS)}")
+    if seed < 0:
+        raise ValueError(f"seed must be >= 0, got {seed}")
+    pycolmap.logging.minloglevel = 2
+    cfg = PRESETS[preset]
+    name = name or f"{preset}_s{seed}"
+    out = Path(out)
+    scene, label_dir = _prepare_out(out, name)
+    truth_dir = scene / "synthetic" / "truth"
+    image_dir = scene / "dense" / "images"
+
+    rng = _rng(seed, 0)
+    world = build_world(rng, int(rng.integers(cfg.n_parts[0], cfg.n_parts[1] + 1)))
+    n_img = cfg.n_train + cfg.n_test
+    plan = _rng(seed, 1)
+    test_ids = set(plan.choice(n_img, cfg.n_test, replace=False).tolist())
+    train_ids = [i for i in range(n_img) if i not in test_ids]
+    n_cand = min(len(train_ids), 3 * cfg.n_eval + 2)
+    cand = sorted(plan.choice(train_ids, n_cand, replace=False).tolist())
+    stems = [
+        f"{seed:02d}{i:06d}_{int(plan.integers(10**9, 10**10))}" for i in range(n_img)
+    ]
+    cams = [
+        sample_camera(_rng(seed, 2, i), world, cfg.long_side, frontal=i in cand)
+        for i in range(n_img)
+    ]
+    query_parts, eval_ids = _choose_queries_and_eval(plan, world, cfg, cand, cams)
+    eval_set = set(eval_ids)
+    used = {p.query for p in world.parts}
+    distractors = [d for d in DISTRACTORS if d not in used]
+    distractor = distractors[int(plan.integers(len(distractors)))]
+    queries = {world.parts[k].query: [k] for k in query_parts}
+    logger.info(
+        "%s: %d parts, queries %s (+ distractor %r), %d eval views",
+        name,
+        len(world.parts),
+        list(queries),
+        distractor,
+        len(eval_ids),
+    )
+
+    records: list[dict] = []
+    all_bbs: list[list[Billboard]] = []
+    pts_xyz, pts_part, pts_src, pts_px = [], [], [], []
+    for i in tqdm(range(n_img), desc=f"synth {name}", disable=not progress, unit="img"):
+        cam = cams[i]
+        stem = stems[i]
+        app = sample_appearance(_rng(seed, 3, i))
+        is_eval = i in eval_set
+        bbs = (
+            []
+            if is_eval
+            else sample_transients(_rng(seed, 4, i), world, cam, cfg.max_cover)
+        )
+        view = render(world, cam, app, bbs, aa=cfg.aa)
+        jpg = image_dir / f"{stem}.jpg"
+        cv2.imwrite(str(jpg), cv2.cvtColor(view.image, cv2.COLOR_RGB2BGR), _JPEG)
+        _save_npz(
+            truth_dir / f"{stem}.npz",
+            part_id=view.part_id,
+            transient=view.transient,
+            depth=view.depth,
+        )
+        if is_eval:
+            lab = isat_label(
+                view.part_id,
+                queries,
+                f"{stem}.jpg",
+                f"label/{name}",
+                _min_px(cam, 0.002, 12),
+            )
+            _check_label(lab, view.part_id, queries)
+            _write_json(label_dir / f"{stem}.json", lab)
+            shutil.copyfile(jpg, label_dir / f"{stem}.jpg")
+        xyz, part, px = _sample_points(
+            _rng(seed, 5, i), world, cam, view, cfg.points_per_image
+        )
+        pts_xyz.append(xyz)
+        pts_part.append(part)
+        pts_src.append(np.full(len(xyz), i))
+        pts_px.append(px)
+        all_bbs.append(bbs)
+        rec = {"name": f"{stem}.jpg", "image_id": i + 1, **cam.to_dict()}
+        rec.update(
+            split="test" if i in test_ids else "train",
+            eval=is_eval,
+            appearance=app.to_dict(),
+            hard=app.hard,
+            transients=[b.to_dict() for b in bbs],
+            transient_fraction=float(view.transient.mean()),
+        )
+        records.append(rec)
+
+    xyz = np.concatenate(pts_xyz)
+    part = np.concatenate(pts_part).astype(np.int16)
+    src = np.concatenate(pts_src)
+    px = np.concatenate(pts_px)
+    tracks = _tracks(world, cams, all_bbs, xyz, src, px, cfg, seed, progress)
+    keep = np.array([len(t) >= 2 for t in tracks])
+    ids = _write_colmap(
+        scene / "dense" / "sparse", records, cams, world, xyz, part, tracks, keep
+    )
+    _save_npz(
+        truth_dir / "points3D.npz", point3D_id=ids, xyz=xyz[keep], part_id=part[keep]
+    )
+
+    with open(scene / f"{preset}.tsv", "w") as f:
+        f.write("filename\tid\tsplit\tdataset\n")
+        for r in records:
+            f.write(f"{r['name']}\t{r['image_id']}\t{r['split']}\t{name}\n")
+    vocab = scene_vocabulary(world, cfg, [distractor])
+    _write_json(scene / "synthetic" / "vocabulary.json", vocab)
+    parts = world.to_dict()
+    parts.update(
+        queries=list(queries) + [distractor],
+        query_parts=queries,
+        distractors=[distractor],
+        preset=preset,
+        seed=seed,
+        version=TRUTH_VERSION,
+    )
+    _write_json(truth_dir / "parts.json", parts)
+    _write_json(
+        truth_dir / "cameras.json",
+        {"images": records, "preset": preset, "seed": seed, "version": TRUTH_VERSION},
+    )
+    logger.info("%s: %d images, %d points3D -> %s", name, n_img, int(keep.sum()), scene)
+    return scene
+
+
+def _check_label(lab: dict, part_id: np.ndarray, queries: dict[str, list[int]]) -> None:
+    for cat, m in fill_label(lab).items():
+        gt = np.isin(part_id, queries[cat])
+        iou = (m & gt).sum() / max(1, (m | gt).sum())
+        if iou < 0.98:
+            logger.warning(
+                "%s: polygons of %r reproduce the mask with IoU %.3f",
+                lab["info"]["name"],
+                cat,
+                iou,
+            )
+
+
+def _tracks(
+    world: World,
+    cams: list[Camera],
+    bbs: list[list[Billboard]],
+    xyz: np.ndarray,
+    src: np.ndarray,
+    px: np.ndarray,
+    cfg: Preset,
+    seed: int,
+    progress: bool,
+) -> list[list[tuple[int, float, float]]]:
+    """Per point, its observations (image index, u, v); the source view first."""
+    tracks: list[list[tuple[int, float, float]]] = [
+        [(int(s), float(p[1]) + 0.5, float(p[0]) + 0.5)]
+        for s, p in zip(src, px, strict=True)
+    ]
+    for c, cam in enumerate(
+        tqdm(cams, desc="tracks", disable=not progress, unit="img")
+    ):
+        uv, z = cam.project(xyz)
+        inb = (z > 1e-6) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0)
+        inb &= (uv[:, 1] < cam.height) & (src != c)
+        idx = np.flatnonzero(inb)
+        if cfg.track_keep < 1.0:
+            idx = idx[_rng(seed, 6, c).random(len(idx)) < cfg.track_keep]
+        idx, uvk = _observations(world, cam, bbs[c], xyz, idx)
+        for k, (u, v) in zip(idx.tolist(), uvk.tolist(), strict=True):
+            tracks[k].append((c, u, v))
+    return tracks
+
+
+def _write_colmap(
+    sparse: Path,
+    records: list[dict],
+    cams: list[Camera],
+    world: World,
+    xyz: np.ndarray,
+    part: np.ndarray,
+    tracks: list[list[tuple[int, float, float]]],
+    keep: np.ndarray,
+) -> np.ndarray:
+    """Write the COLMAP model; returns the point3D ids of the kept points."""
+    import pycolmap
+
+    kps: list[list[tuple[float, float]]] = [[] for _ in cams]
+    elems: list[list[tuple[int, int]]] = []
+    for k in np.flatnonzero(keep):
+        el = []
+        for c, u, v in tracks[k]:
+            el.append((c + 1, len(kps[c])))
+            kps[c].append((u, v))
+        elems.append(el)
+    rec = pycolmap.Reconstruction()
+    for c, (cam, r) in enumerate(zip(cams, records, strict=True)):
+        iid = r["image_id"]
+        K = cam.K
+        rec.add_camera_with_trivial_rig(
+            pycolmap.Camera(
+                model="PINHOLE",
+                width=cam.width,
+                height=cam.height,
+                params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
+                camera_id=iid,
+            )
+        )
+        kp = np.asarray(kps[c], np.float64).reshape(-1, 2)
+        img = pycolmap.Image(name=r["name"], keypoints=kp, camera_id=iid, image_id=iid)
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(cam.R.copy()), cam.t.copy())
+        rec.add_image_with_trivial_frame(img, pose)
+    colours = (
+        np.clip(clean_albedo(world, part[keep], xyz[keep]), 0, 1) * 255 + 0.5
+    ).astype(np.uint8)
+    ids = []
+    for X, col, el in zip(xyz[keep], colours, elems, strict=True):
+        tr = pycolmap.Track()
+        for iid, p2 in el:
+            tr.add_element(iid, p2)
+        ids.append(rec.add_point3D(X, tr, col))
+    rec.write(str(sparse))
+    return np.asarray(ids, np.int64)
+
+
+# ---------------------------------------------------------------- re-render --
+
+
+def load_truth(scene_dir: Path) -> tuple[World, dict]:
+    """The world and the cameras.json dict of a generated scene."""
+    truth = Path(scene_dir) / "synthetic" / "truth"
+    if not (truth / "parts.json").is_file():
+        raise FileNotFoundError(
+            f"{truth / 'parts.json'} not found; is {scene_dir} a synthetic scene?"
+        )
+    world = World.from_dict(json.loads((truth / "parts.json").read_text()))
+    cameras = json.loads((truth / "cameras.json").read_text())
+    return world, cameras
+
+
+def rerender(
+    world: World,
+    record: dict,
+    appearance: str | Appearance = "own",
+    occluders: str = "own",
+    seed: int = 0,
+    aa: int = 5,
+) -> tuple[View, Appearance]:
+    """Render a truth camera again under another appearance or other occluders.
+
+    Args:
+        world: the scene's world (see load_truth).
+        record: the image's entry of cameras.json.
+        appearance: "own" (as generated), "neutral", "hard" (a random hard
+            condition), "random", or an Appearance.
+        occluders: "own", "none", or "force" (at least one new billboard).
+        seed: seeds the random appearance and occluders.
+        aa: samples per pixel.
+
+    Returns:
+        The view and the appearance used.
+    """
+    cam = Camera.from_dict(record)
+    rng = _rng(seed, 7, int(record["image_id"]))
+    if isinstance(appearance, Appearance):
+        app = appearance
+    elif appearance == "own":
+        app = Appearance.from_dict(record["appearance"])
+    elif appearance == "neutral":
+        app = neutral_appearance()
+    elif appearance in ("hard", "random"):
+        app = sample_appearance(rng, hard=appearance == "hard")
+    else:
+        raise ValueError(f"unknown appearance {appearance!r}")
+    if occluders == "own":
+        bbs = [Billboard.from_dict(b) for b in record.get("transients", [])]
+    elif occluders == "none":
+        bbs = []
+    elif occluders == "force":
+        bbs = []
+        for _ in range(20):
+            bbs = sample_transients(rng, world, cam, max_cover=0.4)
+            if bbs:
+                break
+    else:
+        raise ValueError(f"unknown occluders {occluders!r}")
+    return render(world, cam, app, bbs, aa=aa), app
