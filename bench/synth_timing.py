@@ -44,6 +44,7 @@ def main() -> None:
                     ],
                     check=True,
                     stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
                 )
                 wall = time.perf_counter() - t0
                 scene = out / f"{preset}_s{seed}"

@@ -1,0 +1,74 @@
+"""The `ptovs` entry points: synth-scene, status, help and error reporting."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+from click.testing import CliRunner
+
+from ptovs.cli import main as cli
+
+
+def test_synth_scene_then_status(tmp_path: Path):
+    runner = CliRunner()
+    r = runner.invoke(
+        cli, ["synth-scene", str(tmp_path / "data"), "--preset", "tiny", "--seed", "5"]
+    )
+    assert r.exit_code == 0, r.output
+    scene = tmp_path / "data" / "tiny_s5"
+    assert (scene / "dense" / "sparse").is_dir() and (scene / "tiny.tsv").is_file()
+    assert list((tmp_path / "data" / "label" / "tiny_s5").glob("*.json"))
+    r = runner.invoke(
+        cli, ["--work-dir", str(tmp_path / "work"), "status", "--data", str(scene)]
+    )
+    assert r.exit_code == 0, r.output
+    assert "scene tiny_s5" in r.output and "downscale r=1" in r.output
+    lines = [ln.split() for ln in r.output.splitlines()]
+    scene_line = next(ln for ln in lines if ln and ln[-1] == "input")
+    assert scene_line[0] == "scene" and len(scene_line[1]) == 12
+    # the scene key is a content key: the same files elsewhere key the same
+    shutil.copytree(tmp_path / "data", tmp_path / "elsewhere")
+    r2 = runner.invoke(
+        cli,
+        [
+            "--work-dir",
+            str(tmp_path / "w2"),
+            "status",
+            "--data",
+            str(tmp_path / "elsewhere" / "tiny_s5"),
+        ],
+    )
+    assert r2.exit_code == 0 and scene_line[1] in r2.output
+
+
+def test_bad_scene_is_a_message_not_a_traceback(tmp_path: Path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    r = CliRunner().invoke(
+        cli, ["--work-dir", str(tmp_path / "w"), "status", "--data", str(empty)]
+    )
+    assert r.exit_code == 1
+    assert "Error:" in r.output and str(empty) in r.output
+    assert "Traceback" not in r.output
+    r = CliRunner().invoke(cli, ["synth-scene", str(tmp_path), "--preset", "huge"])
+    assert r.exit_code == 2 and "huge" in r.output
+
+
+def test_module_entry_point_and_help():
+    out = subprocess.run(
+        [sys.executable, "-m", "ptovs", "--help"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    assert "synth-scene" in out and "status" in out and "--work-dir" in out
+    out = subprocess.run(
+        [sys.executable, "-m", "ptovs", "--version"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    assert "ptovs" in out
