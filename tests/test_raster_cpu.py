@@ -1,0 +1,477 @@
+"""The compiled CPU compositing kernel (`ptovs.raster._cpu`) against the torch oracle.
+
+Tolerances. Both backends apply the same skip and stop rules, but not bit-identically:
+the kernel computes sigma with FMAs, exp with a polynomial (about 1 ulp) and T as a
+float32 product, the oracle exp(cumsum(log1p(-alpha))) in float64. Smooth values
+therefore agree to ~1e-7 relative (measured: 5e-8 to 4e-7 on every output). A pair
+whose alpha sits within an ulp of 1/255, or whose next_T sits within an ulp of 1e-4,
+can be decided differently and move one pixel (and its gradients) by up to ~1/255.
+`_assert_close` therefore demands a relative L2 error <= 1e-5 on every tensor and
+elementwise agreement to 1e-4 of the tensor's scale, except for at most `outliers`
+elements (the boundary band). With the seeds below no element falls in the band.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+
+import pytest
+import torch
+
+from ptovs.raster import _common, _reference
+
+if not any(shutil.which(c) for c in (os.environ.get("CXX", "c++"), "g++", "clang++")):
+    pytest.skip(
+        "no C++ compiler: the compiled CPU kernel cannot be built",
+        allow_module_level=True,
+    )
+
+from ptovs.raster import _cpu  # noqa: E402
+
+REL_L2 = 1e-5
+REL_ELEM = 1e-4
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _built() -> None:
+    assert _cpu.available(), "a C++ compiler exists, so the CPU kernel must build"
+
+
+def _assert_close(name, actual, expected, outliers=0, rel_l2=REL_L2, rel_elem=REL_ELEM):
+    assert actual.shape == expected.shape, name
+    assert bool(torch.isfinite(actual).all()), f"{name}: non-finite values"
+    a, e = actual.double(), expected.double()
+    scale = e.abs().max().item()
+    if scale == 0.0:
+        assert a.abs().max().item() == 0.0, f"{name}: expected all zeros"
+        return
+    diff = (a - e).abs()
+    bad = int((diff > rel_elem * scale).sum())
+    assert bad <= outliers, f"{name}: {bad} elements off by > {rel_elem} x {scale:.3g}"
+    l2 = ((a - e).norm() / e.norm()).item()
+    assert l2 <= rel_l2 or bad > 0, f"{name}: relative L2 error {l2:.2e}"
+
+
+def _gaussians(n, width, height, seed, opacity=(0.1, 0.9)):
+    """RASTERIZER.md §7 scene: camera at the origin looking down +z, fx = fy = W."""
+    g = torch.Generator().manual_seed(seed)
+    z = torch.rand(n, generator=g) * 4.0 + 2.0
+    x = (torch.rand(n, generator=g) - 0.5) * z
+    y = (torch.rand(n, generator=g) - 0.5) * height / width * z
+    log_s = torch.rand(n, 3, generator=g) * math.log(6.0) + math.log(0.01)
+    o = torch.rand(n, generator=g) * (opacity[1] - opacity[0]) + opacity[0]
+    gs = _common.Gaussians(
+        means=torch.stack((x, y, z), 1),
+        quats=torch.randn(n, 4, generator=g),
+        scales=log_s.exp(),
+        opacities=o,
+    )
+    fx = float(width)
+    K = torch.tensor([[fx, 0.0, width / 2], [0.0, fx, height / 2], [0.0, 0.0, 1.0]])
+    return gs, _common.Camera(torch.eye(4), K, width, height)
+
+
+def _splats(n, width, height, tile, seed):
+    gs, cam = _gaussians(n, width, height, seed)
+    with torch.no_grad():
+        p = _common.project(gs, cam)
+    return p, _common.intersect(p, width, height, tile)
+
+
+def _run(composite, inputs, isect, width, height, v_image, v_alpha):
+    """Composite, backprop <image, v_image> + <alpha, v_alpha>; outputs and grads."""
+    leaves = [
+        None if t is None else t.detach().clone().requires_grad_() for t in inputs
+    ]
+    image, alpha, n_contrib = composite(*leaves, isect, width, height)
+    loss = (image * v_image).sum()
+    if v_alpha is not None:
+        loss = loss + (alpha * v_alpha).sum()
+    loss.backward()
+    grads = [None if t is None else t.grad for t in leaves]
+    return image.detach(), alpha.detach(), n_contrib, grads
+
+
+GRAD_NAMES = ("means2d", "conics", "opacities", "colors", "background")
+
+
+def _compare(p, isect, width, height, d, seed, background=True, alpha_grad=True):
+    g = torch.Generator().manual_seed(seed)
+    n = p.means2d.shape[0]
+    colors = torch.rand(n, d, generator=g)
+    bg = torch.rand(d, generator=g) if background else None
+    v_image = torch.randn(height, width, d, generator=g)
+    v_alpha = torch.randn(height, width, 1, generator=g) if alpha_grad else None
+    inputs = (p.means2d, p.conics, p.opacities, colors, bg)
+    ref = _run(_reference.composite, inputs, isect, width, height, v_image, v_alpha)
+    cpu = _run(_cpu.composite, inputs, isect, width, height, v_image, v_alpha)
+    _assert_close("image", cpu[0], ref[0])
+    _assert_close("alpha", cpu[1], ref[1])
+    assert cpu[2].dtype == torch.int32
+    assert torch.equal(cpu[2], ref[2]), "n_contrib"
+    for name, gc, gr in zip(GRAD_NAMES, cpu[3], ref[3], strict=True):
+        if gr is None:
+            assert gc is None, name
+        else:
+            _assert_close(f"grad {name}", gc, gr)
+    return cpu
+
+
+@pytest.mark.parametrize(
+    ("d", "tile", "width", "height", "n"),
+    [
+        (1, 8, 37, 29, 400),
+        (3, 16, 50, 45, 600),
+        (12, 8, 61, 35, 1500),
+        (12, 16, 61, 35, 1500),
+        (32, 16, 40, 33, 800),
+        (3, 4, 23, 18, 150),
+        (15, 8, 45, 38, 900),
+        (12, 16, 130, 97, 20000),
+    ],
+)
+def test_matches_reference(d, tile, width, height, n):
+    p, isect = _splats(n, width, height, tile, seed=d * 100 + tile)
+    out = _compare(p, isect, width, height, d, seed=7)
+    assert (
+        int(out[2].sum()) > 2 * width * height
+    )  # overlapping splats, not a sparse toy
+
+
+@pytest.mark.parametrize("d", [2, 4, 8, 16])
+def test_no_background_and_no_alpha_grad(d):
+    p, isect = _splats(500, 45, 31, 8, seed=3)
+    out = _compare(p, isect, 45, 31, d, seed=8, background=False, alpha_grad=False)
+    assert out[3][4] is None  # no background -> no background gradient
+
+
+def test_pixel_centre_convention():
+    # One isotropic splat centred on pixel (row 1, col 2), i.e. at (2.5, 1.5).
+    means2d = torch.tensor([[2.5, 1.5]])
+    conics = torch.tensor([[0.5, 0.0, 0.5]])
+    opac = torch.tensor([0.8])
+    p = _common.Projected(means2d, conics, opac, torch.ones(1), torch.full((1, 2), 4))
+    isect = _common.intersect(p, 5, 4, 4)
+    image, alpha, _ = _cpu.composite(
+        means2d, conics, opac, torch.ones(1, 1), None, isect, 5, 4
+    )
+    assert image[1, 2, 0].item() == pytest.approx(0.8, rel=1e-6)  # sigma = 0 there
+    side = 0.8 * math.exp(-0.25)  # one pixel away: sigma = 0.5 * 0.5 * 1
+    for i, j in ((0, 2), (2, 2), (1, 1), (1, 3)):
+        assert image[i, j, 0].item() == pytest.approx(side, rel=1e-6)
+    assert torch.allclose(alpha[..., 0], image[..., 0], rtol=1e-6, atol=1e-7)
+
+
+def _sequential(means2d, conics, opac, colors, isect, width, x, y):
+    """A literal float32 walk over one pixel's tile list (RASTERIZER.md §3)."""
+    f32 = torch.float32
+    tile_id = (y // isect.tile) * isect.tw + x // isect.tile
+    s, e = int(isect.tile_offsets[tile_id]), int(isect.tile_offsets[tile_id + 1])
+    t = torch.tensor(1.0, dtype=f32)
+    out = torch.zeros(colors.shape[1], dtype=f32)
+    count = 0
+    for gid in isect.flatten_ids[s:e].tolist():
+        dx = means2d[gid, 0] - (x + 0.5)
+        dy = means2d[gid, 1] - (y + 0.5)
+        a, b, c = conics[gid]
+        sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+        if sigma < 0:
+            continue
+        alpha = torch.clamp(opac[gid] * torch.exp(-sigma), max=0.99)
+        if alpha < 1 / 255:
+            continue
+        next_t = t * (1 - alpha)
+        if next_t <= 1e-4:  # exclusive stop
+            break
+        out += colors[gid] * alpha * t
+        t = next_t
+        count += 1
+    return out, t, count
+
+
+def test_saturation_stack():
+    # 16 opaque splats within 1e-3 px of one spot: the 0.99 clamp fires, T collapses.
+    g = torch.Generator().manual_seed(5)
+    n, width, height = 16, 13, 11
+    means2d = torch.tensor([6.3, 5.6]) + (torch.rand(n, 2, generator=g) - 0.5) * 1e-3
+    conics = torch.tensor([0.4, 0.05, 0.3]).repeat(n, 1)
+    opac = torch.ones(n)
+    depths = torch.arange(n, dtype=torch.float32) + 1.0
+    p = _common.Projected(means2d, conics, opac, depths, torch.full((n, 2), 6))
+    for tile in (4, 8, 16):
+        isect = _common.intersect(p, width, height, tile)
+        out = _compare(p, isect, width, height, 3, seed=tile)
+        image, alpha, n_contrib, grads = out
+        assert alpha.max().item() > 0.99
+        for grad in grads:
+            assert bool(torch.isfinite(grad).all())
+        colors = torch.rand(n, 3, generator=torch.Generator().manual_seed(tile))
+        with torch.no_grad():
+            img2, alpha2, nc2 = _cpu.composite(
+                means2d, conics, opac, colors, None, isect, width, height
+            )
+        for x, y in ((6, 5), (5, 5), (7, 6), (0, 0), (12, 10)):
+            c, t, count = _sequential(means2d, conics, opac, colors, isect, width, x, y)
+            assert int(nc2[y, x]) == count
+            assert torch.allclose(img2[y, x], c, rtol=1e-5, atol=1e-6)
+            assert alpha2[y, x, 0].item() == pytest.approx(1 - t.item(), abs=1e-6)
+        assert int(nc2[5, 6]) < n  # the stop fired before the stack ran out
+
+
+def test_threads_agree():
+    p, isect = _splats(2000, 70, 50, 8, seed=11)
+    g = torch.Generator().manual_seed(2)
+    colors = torch.rand(2000, 12, generator=g)
+    bg = torch.rand(12, generator=g)
+    v_image = torch.randn(50, 70, 12, generator=g)
+    v_alpha = torch.randn(50, 70, 1, generator=g)
+    inputs = (p.means2d, p.conics, p.opacities, colors, bg)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = _run(_cpu.composite, inputs, isect, 70, 50, v_image, v_alpha)
+        torch.set_num_threads(2)
+        two = _run(_cpu.composite, inputs, isect, 70, 50, v_image, v_alpha)
+    finally:
+        torch.set_num_threads(before)
+    # The forward is per tile: bit-identical. Gradients differ by summation order only.
+    for a, b in zip(one[:3], two[:3], strict=True):
+        assert torch.equal(a, b)
+    for name, a, b in zip(GRAD_NAMES, one[3], two[3], strict=True):
+        _assert_close(f"grad {name}", a, b, rel_l2=1e-6, rel_elem=1e-5)
+
+
+def test_render_end_to_end():
+    from ptovs.raster import render
+
+    gs, cam = _gaussians(800, 48, 36, seed=21)
+    g = torch.Generator().manual_seed(4)
+    colors = torch.rand(800, 4, generator=g)
+    bg = torch.rand(4, generator=g)
+    v_image = torch.randn(36, 48, 4, generator=g)
+    v_alpha = torch.randn(36, 48, 1, generator=g)
+    results = {}
+    for backend in ("torch", "cpu"):
+        leaves = [
+            t.clone().requires_grad_()
+            for t in (gs.means, gs.quats, gs.scales, gs.opacities, colors, bg)
+        ]
+        out = render(
+            _common.Gaussians(*leaves[:4]), cam, leaves[4], background=leaves[5],
+            backend=backend, tile=8, depth=False,
+        )  # fmt: skip
+        ((out.image * v_image).sum() + (out.alpha * v_alpha).sum()).backward()
+        results[backend] = (
+            out.image.detach(),
+            out.alpha.detach(),
+            [t.grad for t in leaves],
+        )
+    ref, cpu = results["torch"], results["cpu"]
+    _assert_close("image", cpu[0], ref[0])
+    _assert_close("alpha", cpu[1], ref[1])
+    names = ("means", "quats", "scales", "opacities", "colors", "background")
+    for name, a, b in zip(names, cpu[2], ref[2], strict=True):
+        _assert_close(f"grad {name}", a, b)
+
+
+def _empty_isect(width, height, tile):
+    tw, th = -(-width // tile), -(-height // tile)
+    return _common.Isect(
+        tile_offsets=torch.zeros(tw * th + 1, dtype=torch.int32),
+        flatten_ids=torch.zeros(0, dtype=torch.int32),
+        tw=tw, th=th, tile=tile,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("case", ["n0", "culled", "1x1"])
+def test_empty(case):
+    width, height, tile = (1, 1, 8) if case == "1x1" else (19, 13, 8)
+    if case == "culled":  # splats exist but none passes 1/255 (and none is binned)
+        n = 5
+        means2d = torch.rand(n, 2) * 10
+        conics = torch.tensor([[0.5, 0.0, 0.5]]).repeat(n, 1)
+        opac = torch.full((n,), 1e-3)
+    else:
+        n = 0
+        means2d, conics, opac = torch.zeros(0, 2), torch.zeros(0, 3), torch.zeros(0)
+    isect = _empty_isect(width, height, tile)
+    colors = torch.rand(n, 3)
+    bg = torch.tensor([0.2, 0.5, 0.7])
+    v_image = torch.ones(height, width, 3)
+    out = _run(
+        _cpu.composite,
+        (means2d, conics, opac, colors, bg),
+        isect,
+        width,
+        height,
+        v_image,
+        None,
+    )
+    image, alpha, n_contrib, grads = out
+    assert torch.equal(image, bg.expand(height, width, 3))
+    assert torch.equal(alpha, torch.zeros(height, width, 1))
+    assert torch.equal(n_contrib, torch.zeros(height, width, dtype=torch.int32))
+    assert torch.equal(grads[4], torch.full((3,), float(width * height)))
+    for grad in grads[:4]:
+        assert grad.shape[0] == n and not bool(grad.any())
+
+
+def test_culled_but_binned_matches_reference():
+    # Binned splats whose opacity is below 1/255 everywhere: nothing composites.
+    p, isect = _splats(300, 33, 21, 8, seed=9)
+    p.opacities = torch.full_like(p.opacities, 0.9 / 255)
+    out = _compare(p, isect, 33, 21, 3, seed=1)
+    assert int(out[2].sum()) == 0
+
+
+def test_degenerate_splats_in_every_tile():
+    # Every tile lists every splat (a worst case for the bounding boxes): far-away,
+    # zero, indefinite, needle-thin and ordinary conics, in id order.
+    width, height, tile = 29, 22, 8
+    means2d = torch.tensor(
+        [[1e20, 5.0], [10.0, -1e19], [7.3, 8.1], [15.2, 11.7], [20.5, 3.3],
+         [3.1, 17.9], [12.0, 12.0], [25.5, 19.5]]
+    )  # fmt: skip
+    conics = torch.tensor(
+        [[0.5, 0.0, 0.5], [0.5, 0.0, 0.5], [0.0, 0.0, 0.0], [0.3, 0.9, 0.2],
+         [50.0, 0.0, 0.01], [1e-6, 0.0, 1e-6], [0.25, 0.1, 0.6], [1.0, 0.999, 1.0]]
+    )  # fmt: skip
+    opac = torch.tensor([0.9, 0.9, 0.02, 0.5, 0.8, 0.3, 0.7, 0.95])
+    n = means2d.shape[0]
+    tw, th = -(-width // tile), -(-height // tile)
+    isect = _common.Isect(
+        tile_offsets=(torch.arange(tw * th + 1) * n).int(),
+        flatten_ids=torch.arange(n, dtype=torch.int32).repeat(tw * th),
+        tw=tw, th=th, tile=tile,
+    )  # fmt: skip
+    p = _common.Projected(means2d, conics, opac, torch.ones(n), torch.ones(n, 2))
+    out = _compare(p, isect, width, height, 3, seed=5)
+    assert int(out[2].max()) >= 2
+
+
+def test_one_pixel_image():
+    p, isect = _splats(50, 1, 1, 16, seed=2)
+    p.means2d = torch.rand(50, 2, generator=torch.Generator().manual_seed(0))
+    isect = _common.intersect(p, 1, 1, 16)
+    out = _compare(p, isect, 1, 1, 3, seed=3)
+    assert int(out[2][0, 0]) > 0
+
+
+def test_rejects_bad_input():
+    p, isect = _splats(10, 16, 16, 8, seed=0)
+    colors = torch.rand(10, 3)
+    with pytest.raises(ValueError, match="float32"):
+        _cpu.composite(
+            p.means2d.double(), p.conics, p.opacities, colors, None, isect, 16, 16
+        )
+    with pytest.raises(ValueError, match="does not cover"):
+        _cpu.composite(p.means2d, p.conics, p.opacities, colors, None, isect, 40, 16)
+    bad = _common.Isect(
+        isect.tile_offsets, isect.flatten_ids + 100, isect.tw, isect.th, 8
+    )
+    if bad.flatten_ids.numel():
+        with pytest.raises(ValueError, match="out of range"):
+            _cpu.composite(p.means2d, p.conics, p.opacities, colors, None, bad, 16, 16)
+
+
+# --- frozen geometry: blend weights (RASTERIZER.md §9) -------------------------
+
+
+def _dense(csr, rows, cols):
+    indptr, indices, values = csr
+    row = torch.repeat_interleave(torch.arange(rows), torch.diff(indptr).long())
+    out = torch.zeros(rows, cols)
+    out.index_put_((row, indices.long()), values, accumulate=True)
+    return out
+
+
+@pytest.mark.parametrize("tile", [8, 16])
+def test_blend_weights(tile):
+    width, height, n, d = 53, 41, 1200, 12
+    p, isect = _splats(n, width, height, tile, seed=30 + tile)
+    w, wt = _cpu.build_blend_weights(
+        p.means2d, p.conics, p.opacities, isect, width, height
+    )
+    indptr, indices, values = w
+    assert (
+        indptr.dtype == indices.dtype == torch.int32 and values.dtype == torch.float32
+    )
+    assert indptr.shape == (width * height + 1,) and wt[0].shape == (n + 1,)
+
+    g = torch.Generator().manual_seed(0)
+    f = torch.rand(n, d, generator=g)
+    with torch.no_grad():
+        image, alpha, n_contrib = _cpu.composite(
+            p.means2d, p.conics, p.opacities, f, None, isect, width, height
+        )
+    # W f is the feature render without background; rows hold the contributors.
+    assert torch.equal(torch.diff(indptr), n_contrib.reshape(-1))
+    _assert_close("W f", _cpu.spmm(*w, f).reshape(height, width, d), image, rel_l2=1e-6)
+    row_sums = torch.zeros(width * height).index_add_(
+        0,
+        torch.repeat_interleave(
+            torch.arange(width * height), torch.diff(indptr).long()
+        ),
+        values,
+    )
+    _assert_close("sum of weights", row_sums, alpha.reshape(-1), rel_l2=1e-6)
+
+    # W^T g is the colors gradient of the render; apply() is differentiable.
+    v = torch.randn(height, width, d, generator=g)
+    leaf = f.clone().requires_grad_()
+    img, _, _ = _cpu.composite(
+        p.means2d, p.conics, p.opacities, leaf, None, isect, width, height
+    )
+    (img * v).sum().backward()
+    f2 = f.clone().requires_grad_()
+    out = _cpu.apply(w, wt, f2)
+    (out * v.reshape(-1, d)).sum().backward()
+    _assert_close("W^T g", f2.grad, leaf.grad)
+    _assert_close("W^T g (spmm)", _cpu.spmm(*wt, v.reshape(-1, d)), leaf.grad)
+
+    # Both directions hold the same matrix (dense check), WT rows sorted by pixel.
+    dense_w = _dense((indptr, indices, values), width * height, n)
+    assert torch.equal(dense_w.T, _dense(wt, n, width * height))
+    rows = torch.repeat_interleave(torch.arange(n), torch.diff(wt[0]).long())
+    key = rows.long() * (width * height) + wt[1].long()
+    assert bool((torch.diff(key) > 0).all())
+
+    # COO: sorted by pixel, same triples as W.
+    pix, gid, wgt = _cpu.blend_weights_coo(
+        p.means2d, p.conics, p.opacities, isect, width, height
+    )
+    assert bool((torch.diff(pix) >= 0).all())
+    assert torch.equal(gid, indices) and torch.equal(wgt, values)
+
+
+def test_blend_weights_match_reference_pairs():
+    p, isect = _splats(700, 40, 30, 8, seed=44)
+    pairs = _reference.contributors(
+        p.means2d, p.conics, p.opacities, isect, 40, 30, weights=True
+    )
+    pix, gid, wgt = _cpu.blend_weights_coo(
+        p.means2d, p.conics, p.opacities, isect, 40, 30
+    )
+    assert torch.equal(pix, pairs.pix) and torch.equal(gid.long(), pairs.gid)
+    _assert_close("weights", wgt, pairs.weights)
+
+
+def test_spmm_general_shapes():
+    # D beyond one 32-column block and a tail; empty rows; int32 CSR from torch.
+    g = torch.Generator().manual_seed(1)
+    dense = torch.rand(37, 23, generator=g) * (torch.rand(37, 23, generator=g) < 0.2)
+    dense[5] = 0.0
+    csr = dense.to_sparse_csr()
+    indptr, indices = csr.crow_indices().int(), csr.col_indices().int()
+    for d in (1, 3, 8, 13, 32, 45):
+        f = torch.rand(23, d, generator=g)
+        _assert_close(
+            f"spmm D={d}",
+            _cpu.spmm(indptr, indices, csr.values(), f),
+            dense @ f,
+            rel_l2=1e-6,
+        )
+    wt = _cpu.csr_transpose((indptr, indices, csr.values()), 23)
+    assert torch.equal(_dense(wt, 23, 37), dense.T)
