@@ -755,3 +755,38 @@ def test_bad_inputs_raise_value_error_naming_the_argument():
         kw = dict(gaussians=gauss, camera=camera, colors=colors) | override
         with pytest.raises(ValueError, match=name):
             render(kw.pop("gaussians"), kw.pop("camera"), kw.pop("colors"), **kw)
+
+
+@pytest.mark.parametrize("backend", ["torch", "cpu"])
+@pytest.mark.parametrize("what", ["scale", "mean"])
+def test_huge_values_give_finite_gradients(backend, what):
+    # Overflowing float32 arithmetic (det of a 1e20-scale splat, a mean at 1e30) culls
+    # the Gaussian; its zero upstream gradients must not become 0 * inf = NaN.
+    if backend not in available_backends():
+        pytest.skip("no C++ compiler: the compiled backend is unavailable")
+    gauss, camera, colors = random_scene(6, 16, 12, seed=21)
+    means, scales = gauss.means.detach().clone(), gauss.scales.detach().clone()
+    for k, big in enumerate((1e10, 1e20, 3e38)):
+        if what == "scale":
+            scales[k] = big
+        else:
+            means[k] = torch.tensor([big, -big, big])
+    leaves = [
+        t.requires_grad_()
+        for t in (
+            means,
+            gauss.quats.detach().clone(),
+            scales,
+            gauss.opacities.detach().clone(),
+            colors.detach().clone(),
+        )
+    ]
+    g = Gaussians(*leaves[:4])
+    out = render(g, camera, leaves[4], backend=backend)
+    (out.image.sum() + out.alpha.sum() + out.depth.sum()).backward()
+    assert (out.radii[:3] == 0).all()  # beyond float32: culled, not NaN
+    assert all_finite(out.image) and all_finite(out.alpha) and all_finite(out.depth)
+    for t in leaves:
+        assert all_finite(t.grad)
+    for t in leaves[:4]:
+        assert (t.grad[:3] == 0).all()  # culled: exactly zero gradient

@@ -475,3 +475,339 @@ def test_spmm_general_shapes():
         )
     wt = _cpu.csr_transpose((indptr, indices, csr.values()), 23)
     assert torch.equal(_dense(wt, 23, 37), dense.T)
+
+
+# --- compiled projection and tile binning (RASTERIZER.md §1, §2) ----------------
+#
+# The kernel mirrors `_common.project` but does its per-Gaussian algebra in float64
+# (rounded to float32 once), so it is compared with `_common.project` run in float64
+# on the same float32 inputs (it sits within float32 rounding: measured <= 6e-8
+# elementwise forward, <= 8e-8 of each gradient's scale) and with the float32 torch
+# graph, whose own float32 error reaches ~2e-5 of a gradient's scale on wide scenes
+# (hence the default 1e-4 elementwise, 1e-5 L2). Radii are compared exactly with the
+# float32 graph.
+
+F64 = torch.float64
+PROJ_OUT = ("means2d", "conics", "opacities", "depths")
+PROJ_IN = ("means", "quats", "scales", "opacities")
+
+
+def _posed_camera(width, height, seed):
+    """A rotated, translated camera with an off-centre principal point."""
+    g = torch.Generator().manual_seed(seed)
+    w = (torch.rand(3, generator=g, dtype=F64) - 0.5) * 0.2
+    skew = torch.tensor(
+        [[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]], dtype=F64
+    )
+    pose = torch.eye(4, dtype=F64)
+    pose[:3, :3] = torch.linalg.matrix_exp(skew)
+    pose[:3, 3] = (torch.rand(3, generator=g, dtype=F64) - 0.5) * 0.2
+    K = torch.tensor(
+        [[0.9 * width, 0.0, 0.45 * width], [0.0, 1.1 * width, 0.55 * height],
+         [0.0, 0.0, 1.0]]
+    )  # fmt: skip
+    return _common.Camera(pose.float(), K, width, height)
+
+
+def _wide_scene(n, width, height, seed):
+    """§7 scene widened to 1.6x the frustum (off-image culls, clamped Jacobians)."""
+    g = torch.Generator().manual_seed(seed)
+    z = torch.rand(n, generator=g) * 5.0 + 0.5
+    x = (torch.rand(n, generator=g) - 0.5) * 1.6 * z
+    y = (torch.rand(n, generator=g) - 0.5) * 1.6 * height / width * z
+    log_s = torch.rand(n, 3, generator=g) * math.log(30.0) + math.log(0.005)
+    return _common.Gaussians(
+        means=torch.stack((x, y, z), 1),
+        quats=torch.randn(n, 4, generator=g),
+        scales=log_s.exp(),
+        opacities=torch.rand(n, generator=g),
+    )
+
+
+def _hard_gaussians():
+    """RASTERIZER.md §6 case 3 (float32), opacity 0.1."""
+    means = torch.tensor(
+        [
+            [0.1, 0.0, 3.0],  # 0 zero scale on one axis
+            [-0.2, 0.1, 3.0],  # 1 zero scale on all axes
+            [0.0, -0.1, 3.5],  # 2 zero quaternion
+            [0.0, 0.0, -2.0],  # 3 behind the camera
+            [0.0, 0.0, 0.01],  # 4 exactly at the near plane (culled)
+            [0.0, 0.0, 0.0100001],  # 5 just past the near plane
+            [50.0, 0.0, 3.0],  # 6 far off-screen (FOV clamp, culled)
+            [-2.5, 0.0, 3.0],  # 7 off-screen, clamped J, overlapping the image
+            [0.0, 0.0, 5.0],  # 8 huge, covers the image
+            [0.05, 0.05, 4.0],  # 9 anisotropy 1e4:1
+            [0.0, 0.0, 1e11],  # 10 beyond far
+            [0.0, 0.0, 0.0],  # 11 at the camera centre
+            [0.1, 0.1, 2.0],  # 12 tiny quaternion (below the eps clamp)
+            [0.0, 3.0, 3.0],  # 13 off-screen in y, clamped J, overlapping
+        ]
+    )
+    n = means.shape[0]
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * n)
+    quats[2] = 0.0
+    quats[9] = torch.tensor([0.9, 0.1, 0.2, 0.3])
+    quats[12] = torch.tensor([1e-30, 0.0, 0.0, 0.0])
+    quats[13] = torch.tensor([0.3, -0.5, 0.2, 0.7])
+    scales = torch.full((n, 3), 0.05)
+    scales[0, 2] = 0.0
+    scales[1] = 0.0
+    scales[7] = torch.tensor([1.0, 0.3, 0.3])
+    scales[8] = 100.0
+    scales[9] = torch.tensor([1.0, 1e-4, 1e-4])
+    scales[13] = torch.tensor([0.2, 1.5, 0.4])
+    return _common.Gaussians(means, quats, scales, torch.full((n,), 0.1))
+
+
+HARD_CULLED = (3, 4, 6, 10, 11)
+
+
+def _project_vjp(project, gs, cam, dtype, seed, antialias):
+    """Projection outputs and the VJP of random cotangents (float64-drawn)."""
+    leaves = [
+        t.detach().to(dtype).requires_grad_()
+        for t in (gs.means, gs.quats, gs.scales, gs.opacities)
+    ]
+    p = project(_common.Gaussians(*leaves), cam, antialias=antialias)
+    outs = [getattr(p, name) for name in PROJ_OUT]
+    g = torch.Generator().manual_seed(seed)
+    cots = [torch.randn(o.shape, generator=g, dtype=F64).to(dtype) for o in outs]
+    grads = torch.autograd.grad(
+        outs, leaves, cots, allow_unused=True, materialize_grads=True
+    )
+    return [o.detach() for o in outs], p.radii, list(grads)
+
+
+def _check_projection(gs, cam, antialias, seed=0):
+    cpu = _project_vjp(_cpu.project, gs, cam, torch.float32, seed, antialias)
+    t32 = _project_vjp(_common.project, gs, cam, torch.float32, seed, antialias)
+    t64 = _project_vjp(_common.project, gs, cam, F64, seed, antialias)
+    assert cpu[1].dtype == torch.int32
+    assert torch.equal(cpu[1], t32[1]), "radii"
+    for name, a, e32, e64 in zip(PROJ_OUT, cpu[0], t32[0], t64[0], strict=True):
+        assert a.dtype == torch.float32 and bool(torch.isfinite(a).all()), name
+        torch.testing.assert_close(a.double(), e64, rtol=1e-6, atol=1e-30, msg=name)
+        _assert_close(name, a, e32)
+    for name, a, e32, e64 in zip(PROJ_IN, cpu[2], t32[2], t64[2], strict=True):
+        assert a.dtype == torch.float32, name
+        _assert_close(f"grad {name} (f64)", a, e64, rel_l2=1e-6, rel_elem=1e-6)
+        _assert_close(f"grad {name}", a, e32)
+    return cpu
+
+
+@pytest.mark.parametrize("antialias", [False, True])
+@pytest.mark.parametrize(
+    ("n", "width", "height", "seed", "posed"),
+    [(3000, 97, 61, 0, False), (3000, 64, 64, 1, True), (5000, 45, 80, 2, True)],
+)
+def test_project_matches_common(n, width, height, seed, posed, antialias):
+    gs = _wide_scene(n, width, height, seed)
+    cam = (
+        _posed_camera(width, height, seed)
+        if posed
+        else _gaussians(1, width, height, 0)[1]
+    )
+    radii = _check_projection(gs, cam, antialias, seed)[1]
+    kept = (radii > 0).all(1)
+    assert 0.3 * n < int(kept.sum()) < n  # some culled, most kept
+
+
+@pytest.mark.parametrize("antialias", [False, True])
+def test_project_hard_cases(antialias):
+    gs = _hard_gaussians()
+    cam = _gaussians(1, 10, 8, 0)[1]
+    outs, radii, grads = _check_projection(gs, cam, antialias)
+    culled = (radii == 0).all(1)
+    assert culled.nonzero().flatten().tolist() == list(HARD_CULLED)
+    for grad in grads:
+        assert bool(torch.isfinite(grad).all())
+    # Zero cotangents on the culled Gaussians (what `render` sends): zero gradients.
+    leaves = [t.clone().requires_grad_() for t in (gs.means, gs.quats, gs.scales)]
+    opac = gs.opacities.clone().requires_grad_()
+    p = _cpu.project(_common.Gaussians(*leaves, opac), cam, antialias=antialias)
+    keep = (~culled).float()
+    loss = sum(
+        (getattr(p, name) * keep.reshape(-1, *[1] * (getattr(p, name).ndim - 1))).sum()
+        for name in PROJ_OUT
+    )
+    loss.backward()
+    for t in (*leaves, opac):
+        assert bool(torch.isfinite(t.grad).all())
+        assert not bool(t.grad[culled].any())
+        assert bool(t.grad[~culled].any())
+
+
+def test_project_clamped_axis_sends_gradient_to_z_only():
+    cam = _gaussians(1, 8, 6, 0)[1]
+    gs = _common.Gaussians(
+        torch.tensor([[-3.0, 0.2, 3.0]]),
+        torch.tensor([[1.0, 0.0, 0.0, 0.0]]),
+        torch.full((1, 3), 0.5),
+        torch.tensor([0.5]),
+    )
+    means = gs.means.clone().requires_grad_()
+    p = _cpu.project(_common.Gaussians(means, gs.quats, gs.scales, gs.opacities), cam)
+    assert (p.radii > 0).all()
+    (grad,) = torch.autograd.grad(p.conics.sum(), means)
+    assert grad[0, 0] == 0 and grad[0, 1] != 0 and grad[0, 2] != 0
+
+
+def test_project_empty_and_threads():
+    cam = _gaussians(1, 16, 12, 0)[1]
+    empty = _common.Gaussians(
+        torch.zeros(0, 3, requires_grad=True), torch.zeros(0, 4), torch.zeros(0, 3),
+        torch.zeros(0),
+    )  # fmt: skip
+    p = _cpu.project(empty, cam)
+    assert p.means2d.shape == (0, 2) and p.radii.shape == (0, 2)
+    p.means2d.sum().backward()
+    assert empty.means.grad.shape == (0, 3)
+    isect = _cpu.intersect(p, 16, 12, 8)
+    assert isect.tile_offsets.tolist() == [0] * 5 and isect.flatten_ids.numel() == 0
+
+    gs = _wide_scene(4000, 53, 41, 5)
+    before = torch.get_num_threads()
+    results = []
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            outs, radii, grads = _project_vjp(
+                _cpu.project, gs, cam, torch.float32, 3, True
+            )
+            p = _cpu.project(gs, cam)
+            isect = _cpu.intersect(p, 53, 41, 8)
+            results.append(
+                [*outs, radii, *grads, isect.tile_offsets, isect.flatten_ids]
+            )
+    finally:
+        torch.set_num_threads(before)
+    for a, b in zip(*results, strict=True):  # per Gaussian: bit-identical
+        assert torch.equal(a, b)
+
+
+def test_project_falls_back_for_camera_gradients_and_float64():
+    gs = _wide_scene(300, 40, 30, 7)
+    cam = _posed_camera(40, 30, 7)
+    pose = cam.cam_from_world.clone().requires_grad_()
+    posed = _common.Camera(pose, cam.K, 40, 30)
+    p = _cpu.project(gs, posed)
+    (p.means2d.sum() + p.conics.sum()).backward()
+    assert pose.grad is not None and bool(pose.grad.any())
+    g64 = gs.to(F64)
+    p64 = _cpu.project(g64, cam)
+    assert p64.means2d.dtype == F64
+    ref = _common.project(g64, cam)
+    assert torch.equal(p64.conics, ref.conics) and torch.equal(p64.radii, ref.radii)
+
+
+def _assert_same_isect(a, b):
+    assert (a.tw, a.th, a.tile) == (b.tw, b.th, b.tile)
+    assert a.tile_offsets.dtype == b.tile_offsets.dtype == torch.int32
+    assert a.flatten_ids.dtype == b.flatten_ids.dtype == torch.int32
+    assert torch.equal(a.tile_offsets, b.tile_offsets)
+    assert torch.equal(a.flatten_ids, b.flatten_ids)
+
+
+@pytest.mark.parametrize("tile", [4, 8, 16, 32])
+@pytest.mark.parametrize(("width", "height"), [(97, 61), (64, 64), (33, 17), (1, 1)])
+def test_intersect_matches_common(tile, width, height):
+    # Projected scenes (posed camera, some culled) ...
+    gs = _wide_scene(3000, width, height, tile)
+    with torch.no_grad():
+        p = _cpu.project(gs, _posed_camera(width, height, tile))
+    _assert_same_isect(
+        _cpu.intersect(p, width, height, tile),
+        _common.intersect(p, width, height, tile),
+    )
+    # ... and arbitrary splats: boxes cut by every edge, radii (0, r), huge radii,
+    # depth ties (exact and after float32 narrowing), signed zeros, negative depths.
+    g = torch.Generator().manual_seed(tile * 1000 + width)
+    n = 4000
+    means2d = torch.rand(n, 2, generator=g) * torch.tensor(
+        [width + 80.0, height + 80.0]
+    )
+    means2d -= 40.0
+    radii = torch.randint(0, 40, (n, 2), generator=g, dtype=torch.int32)
+    radii[::97] = 2**31 - 1
+    radii[1::53, 0] = 0
+    pool = torch.tensor(
+        [1.0, 2.0, 2.0000001, 3.5, 0.0, -0.0, -1.0, 1e-30, 1e30, float("inf")]
+    )
+    depths = pool[torch.randint(0, len(pool), (n,), generator=g)]
+    depths[::3] = torch.rand(n, generator=g)[::3] * 5.0
+    p = _common.Projected(
+        means2d, torch.zeros(n, 3), torch.zeros(n), depths.double().float(), radii
+    )
+    a = _cpu.intersect(p, width, height, tile)
+    _assert_same_isect(a, _common.intersect(p, width, height, tile))
+    assert a.flatten_ids.numel() > 0
+
+
+@pytest.mark.parametrize("antialias", [False, True])
+def test_render_end_to_end_posed_with_depth(antialias):
+    from ptovs.raster import render
+
+    width, height, n, d = 57, 43, 1500, 12
+    gs = _wide_scene(n, width, height, 12)
+    cam = _posed_camera(width, height, 12)
+    g = torch.Generator().manual_seed(5)
+    colors = torch.rand(n, d, generator=g)
+    bg = torch.rand(d, generator=g)
+    v_image = torch.randn(height, width, d, generator=g)
+    v_alpha = torch.randn(height, width, 1, generator=g)
+    v_depth = torch.randn(height, width, 1, generator=g)
+    results = {}
+    for backend in ("torch", "cpu"):
+        leaves = [
+            t.clone().requires_grad_()
+            for t in (gs.means, gs.quats, gs.scales, gs.opacities, colors, bg)
+        ]
+        out = render(
+            _common.Gaussians(*leaves[:4]), cam, leaves[4], background=leaves[5],
+            backend=backend, tile=16, antialias=antialias,
+        )  # fmt: skip
+        loss = (out.image * v_image).sum() + (out.alpha * v_alpha).sum()
+        (loss + (out.depth * v_depth).sum()).backward()
+        results[backend] = (
+            [out.image.detach(), out.alpha.detach(), out.depth.detach()],
+            out.radii,
+            [t.grad for t in leaves],
+        )
+    ref, cpu = results["torch"], results["cpu"]
+    assert torch.equal(cpu[1], ref[1]), "radii"
+    for name, a, b in zip(("image", "alpha", "depth"), cpu[0], ref[0], strict=True):
+        _assert_close(name, a, b)
+    names = ("means", "quats", "scales", "opacities", "colors", "background")
+    culled = (cpu[1] == 0).all(1)
+    assert bool(culled.any())
+    for name, a, b in zip(names, cpu[2], ref[2], strict=True):
+        _assert_close(f"grad {name}", a, b)
+        if name != "background":
+            assert not bool(a[culled].any()), name  # culled: exactly zero
+
+
+def test_render_hard_cases_cpu():
+    from ptovs.raster import render
+
+    gs = _hard_gaussians()
+    cam = _gaussians(1, 10, 8, 0)[1]
+    g = torch.Generator().manual_seed(0)
+    colors = torch.rand(len(gs), 3, generator=g)
+    v = torch.randn(8, 10, 3, generator=g)
+    results = {}
+    for backend in ("torch", "cpu"):
+        leaves = [
+            t.clone().requires_grad_()
+            for t in (gs.means, gs.quats, gs.scales, gs.opacities, colors)
+        ]
+        out = render(_common.Gaussians(*leaves[:4]), cam, leaves[4], backend=backend)
+        ((out.image * v).sum() + out.alpha.sum() + out.depth.sum()).backward()
+        results[backend] = (out, [t.grad for t in leaves])
+    (out, grads), (ref, ref_grads) = results["cpu"], results["torch"]
+    assert out.alpha.max() < 1 - 0.9**8 + 1e-6  # no NaN turned into MAX_ALPHA
+    _assert_close("image", out.image, ref.image)
+    for grad, ref_grad in zip(grads, ref_grads, strict=True):
+        assert bool(torch.isfinite(grad).all())
+        assert not bool(grad[list(HARD_CULLED)].any())
+        _assert_close("grad", grad, ref_grad)

@@ -8,8 +8,8 @@ out.image  # [H, W, D]   out.alpha  # [H, W, 1]   out.depth  # [H, W, 1]
 
 `render` validates its inputs once, projects (`_common.project`), bins the splats into
 tiles (`_common.intersect`) and hands compositing to a backend: "torch" (the pure
-PyTorch reference and oracle, `_reference`) or "cpu" (compiled, `_cpu`). Both give the
-same image up to float rounding.
+PyTorch reference and oracle, `_reference`) or "cpu" (compiled, `_cpu`, which also
+projects and bins in its kernel). Both give the same image up to float rounding.
 """
 
 from __future__ import annotations
@@ -225,12 +225,16 @@ def _project(
     near: float,
     far: float,
     antialias: bool,
+    backend: str,
 ) -> tuple[Projected, Isect]:
-    projected = project(
+    # The cpu backend projects and bins in its compiled kernel (no camera gradients:
+    # `_cpu.project` falls back to `_common.project` when the pose requires one).
+    mod = _cpu_module() if backend == "cpu" else None
+    proj, isect = (project, intersect) if mod is None else (mod.project, mod.intersect)
+    projected = proj(
         gaussians, camera, near=near, far=far, antialias=antialias, tile=tile
     )
-    isect = intersect(projected, camera.width, camera.height, tile)
-    return projected, isect
+    return projected, isect(projected, camera.width, camera.height, tile)
 
 
 def render(
@@ -271,7 +275,7 @@ def render(
     _validate(gaussians, camera, colors, background, tile, near, far, backend)
     name = _resolve_backend(backend, colors.dtype, colors.device)
     composite = _BACKENDS[name]()
-    projected, isect = _project(gaussians, camera, tile, near, far, antialias)
+    projected, isect = _project(gaussians, camera, tile, near, far, antialias, name)
 
     values, bg = colors, background
     if depth:  # depth rides along as one more channel with a zero background
@@ -448,7 +452,7 @@ def blend_weights(
     name = _resolve_backend(backend, dtype, device)
     width, height = camera.width, camera.height
     with torch.no_grad():
-        p, isect = _project(gaussians, camera, tile, near, far, antialias)
+        p, isect = _project(gaussians, camera, tile, near, far, antialias, name)
         geometry = (p.means2d, p.conics, p.opacities, isect, width, height)
         n, n_pix = len(gaussians), width * height
         cpu = _cpu_module() if name == "cpu" else None

@@ -177,6 +177,33 @@ def project(
         radii [N, 2] int32.
     """
     del tile
+    p = _project(g, cam, near, far, antialias)
+    with torch.no_grad():
+        overflow = ~(
+            torch.isfinite(p.means2d).all(-1)
+            & torch.isfinite(p.conics).all(-1)
+            & torch.isfinite(p.depths)
+        )
+    if not overflow.any():
+        return p
+    # Huge but finite inputs (scales ~1e19, means ~1e38) overflow float arithmetic.
+    # Such Gaussians are culled, but inf intermediates would turn their zero upstream
+    # gradients into NaN (0 * inf). Recompute with those rows replaced by constants.
+    rows = overflow[:, None]
+    safe = Gaussians(
+        means=torch.where(rows, torch.zeros_like(g.means).detach(), g.means),
+        quats=torch.where(rows, torch.ones_like(g.quats).detach(), g.quats),
+        scales=torch.where(rows, torch.zeros_like(g.scales).detach(), g.scales),
+        opacities=g.opacities,
+    )
+    p = _project(safe, cam, near, far, antialias)
+    p.radii = torch.where(rows, 0, p.radii).to(torch.int32)
+    return p
+
+
+def _project(
+    g: Gaussians, cam: Camera, near: float, far: float, antialias: bool
+) -> Projected:
     dtype, device = g.means.dtype, g.means.device
     viewmat = cam.cam_from_world.to(dtype=dtype, device=device)
     K = cam.K.detach().to(torch.float64).cpu()

@@ -1,4 +1,4 @@
-"""Compiled CPU compositing, csrc/composite.cpp (RASTERIZER.md §3, §4 and §9).
+"""Compiled CPU rasterizer, csrc/project.cpp + composite.cpp (RASTERIZER.md §1–§4, §9).
 
 The kernel is built on first use with `torch.utils.cpp_extension.load` (ninja and the
 system C++ compiler) into `<cache>/torch_ext/<name>/`, where `<cache>` is
@@ -10,6 +10,10 @@ headers, so a cold build takes about 6 s, and ctypes releases the GIL during a c
 
 Entry points:
 - `available()`: builds (once) and reports whether the kernel can be used.
+- `project(...)`: `_common.project` with a compiled forward and hand-written backward
+  (gradients to means, quats, scales and opacities; a pose that requires a gradient
+  falls back to `_common.project`).
+- `intersect(...)`: `_common.intersect`, compiled, bit-identical.
 - `composite(...)`: autograd forward/backward with the reference's signature.
 - `build_blend_weights(...)`, `apply(...)`, `spmm(...)`, `blend_weights_coo(...)`:
   the frozen-geometry fast path (RASTERIZER.md §9): F = W f and its backward W^T g.
@@ -31,12 +35,15 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from ptovs.raster._common import Isect
+from ptovs.raster import _common
+from ptovs.raster._common import FOV_MARGIN, Camera, Gaussians, Isect, Projected
 
 log = logging.getLogger(__name__)
 
-SOURCE = Path(__file__).with_name("csrc") / "composite.cpp"
-ABI_VERSION = 1  # ptovs_abi_version() in composite.cpp
+SOURCES = tuple(
+    Path(__file__).with_name("csrc") / name for name in ("composite.cpp", "project.cpp")
+)
+ABI_VERSION = 2  # ptovs_abi_version() in composite.cpp
 # No -ffast-math: the kernel relies on IEEE comparisons (NaN fails every test) and on
 # forward and backward rounding identically; exp is a hand-written polynomial, so
 # fast-math buys nothing. -ffp-contract=off keeps a * b + c unfused except where the
@@ -73,6 +80,10 @@ _SIGNATURES = {
     "ptovs_blend_weights": [_p] * 3 + [_i64, _p, _p] + [_i32] * 5 + [_p] * 4 + [_i32],
     "ptovs_spmm": [_p] * 3 + [_i64, _p, _i32, _p, _i32],
     "ptovs_csr_transpose": [_p] * 3 + [_i64, _i64] + [_p] * 4 + [_i32],
+    "ptovs_project_fwd": [_p] * 4 + [_i64, _p] + [_i32] * 3 + [_p] * 5 + [_i32],
+    "ptovs_project_bwd": [_p] * 4 + [_i64, _p] + [_i32] * 3 + [_p] * 8 + [_i32],
+    "ptovs_intersect_count": [_p, _p, _p, _i64] + [_i32] * 3 + [_p] * 6 + [_i32],
+    "ptovs_intersect_fill": [_i64, _p, _p, _p, _i32, _i32, _p, _i32],
 }
 
 
@@ -102,7 +113,7 @@ def cache_dir() -> Path:
 def _build_name(cflags: list[str], ldflags: list[str]) -> str:
     h = hashlib.sha256()
     for part in (
-        SOURCE.read_bytes(),
+        *(source.read_bytes() for source in SOURCES),
         repr((cflags, ldflags, ABI_VERSION)).encode(),
         torch.__version__.encode(),
         sys.version.encode(),
@@ -138,7 +149,7 @@ def _build(cflags: list[str], ldflags: list[str]) -> ctypes.CDLL:
     def compile_and_open() -> ctypes.CDLL:
         path = cpp_extension.load(
             name=name,
-            sources=[str(SOURCE)],
+            sources=[str(source) for source in SOURCES],
             extra_cflags=cflags,
             extra_ldflags=ldflags,
             build_directory=str(build_dir),
@@ -310,7 +321,8 @@ class _Composite(torch.autograd.Function):
             else v_alpha.to(torch.float32).reshape(height, width).contiguous()
         )
         nt = torch.get_num_threads()
-        grads = torch.zeros(nt, n, 6 + d)
+        # Per-thread slices, zeroed by the kernel and summed into grads[0].
+        grads = torch.empty(nt, n, 6 + d)
         if width * height and n:
             rc = lib.ptovs_composite_bwd(
                 *map(_ptr, (m, c, o, col, bg)), n, d, _ptr(offsets), _ptr(ids),
@@ -319,10 +331,14 @@ class _Composite(torch.autograd.Function):
             )  # fmt: skip
             if rc:
                 raise MemoryError(f"ptovs_composite_bwd failed ({rc})")
-        g = grads.sum(0) if nt > 1 else grads[0]
+        else:
+            grads.zero_()
+        g = grads[0]
         # The kernel sums v_sigma * (dx, dy, dx^2, dx dy, dy^2) per Gaussian; with
         # sigma = a dx^2 / 2 + b dx dy + c dy^2 / 2 and d = mean2d - pixel:
-        a, b, cc = c.unbind(1)
+        # A culled Gaussian may carry an inf conic (overflowing scale) and zero sums:
+        # 0 * inf would be NaN. Contributing Gaussians always have finite conics.
+        a, b, cc = torch.where(torch.isfinite(c), c, 0.0).unbind(1)
         v_means2d = torch.stack(
             (a * g[:, 0] + b * g[:, 1], b * g[:, 0] + cc * g[:, 1]), 1
         )
@@ -367,6 +383,199 @@ def composite(
         means2d, conics, opacities, colors, background, isect, width, height
     )
     return image, alpha, n_contrib
+
+
+# Projection and tile binning (RASTERIZER.md §1, §2), mirroring `_common`.
+
+
+def _camera_params(cam: Camera, near: float, far: float) -> Tensor:
+    """float64 [22]: R_cw (row-major), t, fx, fy, cx, cy, the four clamp limits, near, far.
+
+    Computed exactly as `_common.project` does: the pose rounded to float32 (the
+    Gaussians' dtype), the intrinsics and limits in float64.
+    """
+    view = cam.cam_from_world.detach().to(torch.float32).to(torch.float64).cpu()
+    K = cam.K.detach().to(torch.float64).cpu()
+    fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+    width, height = cam.width, cam.height
+    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+    lims = (
+        (width - cx) / fx + FOV_MARGIN * tan_fovx,
+        cx / fx + FOV_MARGIN * tan_fovx,
+        (height - cy) / fy + FOV_MARGIN * tan_fovy,
+        cy / fy + FOV_MARGIN * tan_fovy,
+    )
+    rest = torch.tensor((fx, fy, cx, cy, *lims, near, far), dtype=torch.float64)
+    return torch.cat((view[:3, :3].reshape(-1), view[:3, 3], rest))
+
+
+class _Project(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, params, width, height, antialias):
+        lib = _lib_or_raise()
+        m, q, s, o = (
+            t.detach().contiguous() for t in (means, quats, scales, opacities)
+        )
+        n = m.shape[0]
+        means2d = torch.empty(n, 2)
+        conics = torch.empty(n, 3)
+        opac = torch.empty(n)
+        depths = torch.empty(n)
+        radii = torch.empty(n, 2, dtype=torch.int32)
+        if n:
+            rc = lib.ptovs_project_fwd(
+                *map(_ptr, (m, q, s, o)), n, _ptr(params), width, height,
+                int(antialias), *map(_ptr, (means2d, conics, opac, depths, radii)),
+                torch.get_num_threads(),
+            )  # fmt: skip
+            if rc:
+                raise RuntimeError(f"ptovs_project_fwd failed ({rc})")
+        ctx.save_for_backward(m, q, s, o, params)
+        ctx.meta = (width, height, int(antialias))
+        ctx.mark_non_differentiable(radii)
+        return means2d, conics, opac, depths, radii
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, v_means2d, v_conics, v_opac, v_depths, _v_radii):
+        lib = _lib_or_raise()
+        m, q, s, o, params = ctx.saved_tensors
+        n = m.shape[0]
+        grads = (
+            torch.empty(n, 3),
+            torch.empty(n, 4),
+            torch.empty(n, 3),
+            torch.empty(n),
+        )
+        ups = [
+            None if v is None else v.to(torch.float32).contiguous()
+            for v in (v_means2d, v_conics, v_opac, v_depths)
+        ]
+        if n:
+            rc = lib.ptovs_project_bwd(
+                *map(_ptr, (m, q, s, o)), n, _ptr(params), *ctx.meta,
+                *map(_ptr, ups), *map(_ptr, grads), torch.get_num_threads(),
+            )  # fmt: skip
+            if rc:
+                raise RuntimeError(f"ptovs_project_bwd failed ({rc})")
+        need = ctx.needs_input_grad
+        return (*(g if need[k] else None for k, g in enumerate(grads)),) + (None,) * 4
+
+
+def _compiled_ok(g: Gaussians, cam: Camera) -> bool:
+    n = g.means.shape[0] if g.means.ndim == 2 else -1
+    shapes = ((g.means, (n, 3)), (g.quats, (n, 4)), (g.scales, (n, 3)))
+    return (
+        all(
+            t.dtype == torch.float32 and t.device.type == "cpu" and t.shape == shape
+            for t, shape in (*shapes, (g.opacities, (n,)))
+        )
+        and not (torch.is_grad_enabled() and cam.cam_from_world.requires_grad)
+        and _load() is not None
+    )
+
+
+def project(
+    g: Gaussians,
+    cam: Camera,
+    *,
+    near: float = _common.NEAR,
+    far: float = _common.FAR,
+    antialias: bool = False,
+    tile: int = 16,
+) -> Projected:
+    """`_common.project` with a compiled forward and a hand-written backward.
+
+    Same maths, constants, culling and outputs (culled Gaussians included); values
+    agree with the float32 torch graph to float32 rounding (the kernel works in
+    float64 per Gaussian), radii exactly unless torch's own float32 rounding puts
+    3.33 sqrt(c) within an ulp of an integer. Gradients flow to means, quats, scales
+    and opacities; a Gaussian whose cotangents are all zero (a culled one in `render`)
+    gets exactly zero. The camera gets no gradient: when its pose requires one, or the
+    Gaussians are not float32 CPU tensors, this falls back to `_common.project`.
+
+    Args:
+        g: the Gaussians (N of them).
+        cam: the camera.
+        near: cull when z <= near.
+        far: cull when z >= far.
+        antialias: multiply opacities by the Mip-Splatting compensation.
+        tile: accepted for a uniform signature; the radius rule ignores it.
+
+    Returns:
+        Projected splats: means2d [N, 2], conics [N, 3], opacities [N], depths [N],
+        radii [N, 2] int32.
+    """
+    if not _compiled_ok(g, cam):
+        return _common.project(
+            g, cam, near=near, far=far, antialias=antialias, tile=tile
+        )
+    params = _camera_params(cam, near, far)
+    means2d, conics, opac, depths, radii = _Project.apply(
+        g.means, g.quats, g.scales, g.opacities, params, cam.width, cam.height,
+        bool(antialias),
+    )  # fmt: skip
+    return Projected(
+        means2d=means2d, conics=conics, opacities=opac, depths=depths, radii=radii
+    )
+
+
+@torch.no_grad()
+def intersect(p: Projected, width: int, height: int, tile: int) -> Isect:
+    """`_common.intersect`, compiled: bit-identical tile lists.
+
+    Args:
+        p: projected splats; radii (0, 0) are skipped.
+        width: image width in pixels.
+        height: image height in pixels.
+        tile: tile edge in pixels.
+
+    Returns:
+        The tile lists: `tile_offsets` [n_tiles + 1] int32 and `flatten_ids` [M] int32.
+    """
+    lib = _load()
+    means2d, radii = p.means2d.detach(), p.radii
+    n = means2d.shape[0]
+    if (
+        lib is None
+        or means2d.dtype != torch.float32
+        or means2d.device.type != "cpu"
+        or means2d.shape != (n, 2)
+        or radii.shape != (n, 2)
+        or p.depths.shape != (n,)
+    ):
+        return _common.intersect(p, width, height, tile)
+    tw, th = -(-width // tile), -(-height // tile)
+    n_tiles = tw * th
+    means2d = means2d.contiguous()
+    radii = radii.to(torch.int32).contiguous()
+    depths = p.depths.detach().to(torch.float32).contiguous()
+    nt = max(1, min(torch.get_num_threads(), n))
+    boxes = torch.empty(n, 4, dtype=torch.int32)
+    order = torch.empty(n, dtype=torch.int32)
+    counts = torch.empty(nt, n_tiles, dtype=torch.int32)
+    tile_offsets = torch.zeros(n_tiles + 1, dtype=torch.int32)
+    sizes = torch.zeros(2, dtype=torch.int64)  # binned Gaussians, entries
+    if n:
+        rc = lib.ptovs_intersect_count(
+            *map(_ptr, (means2d, radii, depths)), n, tw, th, tile,
+            _ptr(boxes), _ptr(order), _ptr(sizes[0:]), _ptr(counts),
+            _ptr(tile_offsets), _ptr(sizes[1:]), nt,
+        )  # fmt: skip
+        if rc == 3:
+            raise ValueError("more tile entries than int32 offsets can index")
+        if rc:
+            raise MemoryError(f"ptovs_intersect_count failed ({rc})")
+    n_valid, total = (int(x) for x in sizes)
+    flatten_ids = torch.empty(total, dtype=torch.int32)
+    if total:
+        lib.ptovs_intersect_fill(
+            n_valid, _ptr(order), _ptr(boxes), _ptr(counts), tw, th,
+            _ptr(flatten_ids), nt,
+        )  # fmt: skip
+    return Isect(
+        tile_offsets=tile_offsets, flatten_ids=flatten_ids, tw=tw, th=th, tile=tile
+    )
 
 
 # Frozen geometry (RASTERIZER.md §9): W [H*W, N] holds alpha_i T_i per composited pair.

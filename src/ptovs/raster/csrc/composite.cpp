@@ -394,7 +394,8 @@ int forward_tiles(const GParam* gp, const float* colors, const int d_, const flo
 
 
 // Backward over all tiles (RASTERIZER.md §4). v_image [H, W, D], v_alpha [H, W];
-// grads [nt, N, 6 + D] (zeroed by the caller), per Gaussian the sums over its pixels of
+// grads [nt, N, 6 + D] (any contents: zeroed here, one slice per thread, then summed
+// into slice 0, which holds the result), per Gaussian the sums over its pixels of
 // (v_sigma dx, v_sigma dy, v_sigma dx^2, v_sigma dx dy, v_sigma dy^2, v_opacity,
 // v_colors...). The caller turns them into v_mean2d = (a S0 + b S1, b S0 + c S1) and
 // v_conic = (S2 / 2, S3, S4 / 2): linear, so it is done once per Gaussian, not per tile.
@@ -425,6 +426,15 @@ int backward_tiles(const GParam* gp, const float* colors, const int d_, const fl
     vf acc_local[DT > 0 ? (6 + DT + L - 1) / L * L : 1];
     vf* acc = DT > 0 ? acc_local : acc_heap;
     float* gbuf = grads + (int64_t)thread_id() * n * s;
+    // Each thread zeroes its own slice (and those of threads the runtime did not start):
+    // first touch in parallel, and no thread reads another's slice before the barrier.
+#ifdef _OPENMP
+    const int n_started = omp_get_num_threads();
+#else
+    const int n_started = 1;
+#endif
+    for (int k = thread_id(); k < nt; k += n_started)
+      std::memset(grads + (int64_t)k * n * s, 0, sizeof(float) * n * s);
     if (!tt || !bv || !sv || !last || !vloc || !colx || !acc_heap) {
       failed = 1;
     } else {
@@ -538,6 +548,13 @@ int backward_tiles(const GParam* gp, const float* colors, const int d_, const fl
           for (int l = 0; j + l < s; ++l) gr[j + l] += tail[l];
         }
       }
+    }
+    // (implicit barrier) Sum the per-thread slices into slice 0, in thread order.
+#pragma omp for schedule(static)
+    for (int64_t i = 0; i < n * s; ++i) {
+      float sum = grads[i];
+      for (int k = 1; k < nt; ++k) sum += grads[(int64_t)k * n * s + i];
+      grads[i] = sum;
     }
     free(tt);
     free(bv);
@@ -664,7 +681,7 @@ int backward_any(int d, A... args) {
 
 extern "C" {
 
-int ptovs_abi_version() { return 1; }
+int ptovs_abi_version() { return 2; }
 
 int ptovs_simd_width() { return PTOVS_AVX2 ? 8 : 0; }
 
@@ -705,8 +722,8 @@ int ptovs_blend_weights(const float* means2d, const float* conics, const float* 
 }
 
 
-// Backward: grads [nt, N, 6 + D] zeroed by the caller, one slice per thread; layout as
-// for backward_tiles.
+// Backward: grads [nt, N, 6 + D] scratch (any contents); the result is left in slice 0,
+// layout as for backward_tiles.
 int ptovs_composite_bwd(const float* means2d, const float* conics, const float* opac,
                         const float* colors, const float* bg, int64_t n, int d,
                         const int32_t* tile_offsets, const int32_t* flatten_ids, int tw,
