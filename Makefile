@@ -38,6 +38,7 @@ format: setup
 	$(BIN)/ruff format . && $(BIN)/ruff check --fix .
 
 bench: setup
+	$(BIN)/python bench/raster.py
 	$(BIN)/python bench/synth_timing.py
 	$(BIN)/python bench/encoder_calibration.py --seeds 0 1 2 --out $(WORK)/synthetic
 
