@@ -46,6 +46,7 @@ log = logging.getLogger(__name__)
 
 FORMAT = "ptovs-artifact/1"
 SHORT = 12  # characters of the key in file names
+ROOT = "/root"  # shard name of the whole-scene datasets (no view can be named so)
 
 
 def artifact_key(
@@ -321,7 +322,7 @@ class ArtifactWriter:
 
     def done_views(self) -> set[str]:
         """Views finished by this or an earlier, interrupted run."""
-        return {n for n in self._done if n != "/root"}
+        return {n for n in self._done if n != ROOT}
 
     def write_view(self, name: str, datasets: Mapping[str, Any]) -> None:
         """Durably store one view's datasets (atomic per view)."""
@@ -329,7 +330,7 @@ class ArtifactWriter:
 
     def write_root(self, datasets: Mapping[str, Any]) -> None:
         """Durably store the whole-scene datasets."""
-        self._write_shard("/root", datasets)
+        self._write_shard(ROOT, datasets)
 
     def _write_shard(self, name: str, datasets: Mapping[str, Any]) -> None:
         shard = self._shard(name)
@@ -352,7 +353,7 @@ class ArtifactWriter:
                 src_path = self._shard(name)
                 dst = (
                     out.require_group("root")
-                    if name == "/root"
+                    if name == ROOT
                     else (out.require_group("views").create_group(_safe_name(name)))
                 )
                 with h5py.File(src_path, "r") as src:
@@ -423,7 +424,7 @@ class Store:
     def partial_views(self, scene: str, stage: str, key: str) -> int:
         parts = self.path(scene, stage, key).with_suffix(".parts")
         return (
-            len([p for p in parts.glob("*.h5") if p.name != "%2Froot.h5"])
+            len([p for p in parts.glob("*.h5") if p.name != f"{_safe_name(ROOT)}.h5"])
             if parts.is_dir()
             else 0
         )
