@@ -76,6 +76,17 @@ class Dataset:
     compression: str | None = None  # "gzip" | "lzf" | None
 
 
+def json_dataset(obj: Any) -> np.ndarray:
+    """A JSON document as a uint8 dataset (strings are not storable as arrays)."""
+    text = json.dumps(obj, sort_keys=True, separators=(",", ":"))
+    return np.frombuffer(text.encode(), dtype=np.uint8).copy()
+
+
+def read_json_dataset(arr: np.ndarray) -> Any:
+    """Inverse of `json_dataset`."""
+    return json.loads(np.asarray(arr, np.uint8).tobytes().decode())
+
+
 class CorruptArtifact(Exception):
     """The file exists but fails verification."""
 
@@ -384,6 +395,78 @@ class ArtifactWriter:
         self._done = set()
 
 
+class Checkpoint:
+    """In-stage checkpoints of a long stage: `<key[:12]>.ckpt/last.pt` beside the artifact.
+
+    `save(state)` writes a dict of tensors and plain containers atomically (temporary
+    name, fsync, rename), tagged with the artifact key; `load()` reads it back with
+    `torch.load(weights_only=True)` and returns None when there is none, when it
+    belongs to another key, or when it is damaged (logged, moved aside). The stage
+    framework deletes the folder once the artifact is complete.
+    """
+
+    NAME = "last.pt"
+
+    def __init__(self, folder: Path, key: str):
+        self.folder = Path(folder)
+        self.key = key
+
+    @property
+    def path(self) -> Path:
+        return self.folder / self.NAME
+
+    def exists(self) -> bool:
+        return self.path.is_file()
+
+    def save(self, state: Mapping[str, Any]) -> None:
+        import torch
+
+        self.folder.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_name(self.NAME + f".{os.getpid()}.tmp")
+        torch.save({"key": self.key, "state": dict(state)}, tmp)
+        _fsync_file(tmp)
+        os.replace(tmp, self.path)
+        _fsync_dir(self.folder)
+
+    def load(self) -> dict[str, Any] | None:
+        import pickle
+
+        import torch
+
+        if not self.path.is_file():
+            return None
+        try:
+            blob = torch.load(self.path, map_location="cpu", weights_only=True)
+        except (
+            OSError,
+            RuntimeError,
+            EOFError,
+            ValueError,
+            pickle.UnpicklingError,
+        ) as exc:
+            bad = self.path.with_name(self.NAME + ".corrupt")
+            log.warning(
+                "checkpoint %s is unreadable (%s); moved to %s, starting over",
+                self.path,
+                exc,
+                bad.name,
+            )
+            os.replace(self.path, bad)
+            return None
+        if not isinstance(blob, dict) or blob.get("key") != self.key:
+            log.warning("checkpoint %s belongs to another run; ignored", self.path)
+            return None
+        return blob["state"]
+
+    def step(self) -> int | None:
+        """The iteration stored in the checkpoint (for `ptovs status`), if any."""
+        state = self.load() if self.exists() else None
+        return None if state is None else int(state.get("step", 0))
+
+    def clear(self) -> None:
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+
 class Store:
     """The work directory: where artifacts live, how they are found and locked."""
 
@@ -457,6 +540,10 @@ class Store:
                 yield
             finally:
                 fcntl.flock(fh, fcntl.LOCK_UN)
+
+    def checkpoint(self, scene: str, stage: str, key: str) -> Checkpoint:
+        """The in-stage checkpoint slot of one (scene, stage, key)."""
+        return Checkpoint(self.path(scene, stage, key).with_suffix(".ckpt"), key)
 
     def writer(
         self, scene: str, stage: str, key: str, attrs: Mapping[str, Any]

@@ -182,3 +182,46 @@ def status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:
         click.echo(
             f"  {spec.name:<20} {chain.key(spec.name)[:12]}  {state:<8} {detail}"
         )
+
+
+@main.command("export-ply")
+@scene_options
+@click.option(
+    "--out",
+    "out",
+    type=click.Path(path_type=Path),
+    required=True,
+    help="PLY file to write (standard 3DGS layout).",
+)
+@click.option(
+    "--image",
+    default=None,
+    help="Bake the appearance of this image (name or stem) into the colours; "
+    "default: the neutral appearance (mean of the train embeddings).",
+)
+@click.pass_obj
+def export_ply(
+    obj: RunContext,
+    scene_name: str | None,
+    data: Path | None,
+    out: Path,
+    image: str | None,
+) -> None:
+    """Export the reconstructed Gaussians as a standard 3DGS PLY.
+
+    Reads the scene's reconstruct artifact (run `ptovs reconstruct` first) and
+    writes x y z, normals, f_dc_*, f_rest_*, opacity logits, log-scales and
+    rotations, with the ΔSH of one image's appearance (or a neutral one) baked
+    into the SH, so any 3DGS viewer shows it.
+    """
+    from ptovs.field.export import export_field_ply
+    from ptovs.stage import Chain
+
+    ref = resolve_scene(obj, scene_name, data)
+    chain = Chain(obj, ref)
+    art = chain.inputs_of("reconstruct")
+    try:
+        n = export_field_ply(art, out, image=image)
+    finally:
+        art.close()
+    click.echo(f"export-ply: {n} Gaussians -> {out}")

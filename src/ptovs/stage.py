@@ -7,7 +7,12 @@ A stage module defines `NAME`, `VERSION`, a frozen `Config` dataclass, a frozen
 - view stages yield `(view_name, {dataset: array})` (a `None` name writes
   whole-scene datasets); if `run` takes a `skip` keyword, views already stored by
   an interrupted run are passed in and must not be yielded again;
-- single stages return `{dataset: array}`.
+- single stages return `{dataset: array}`;
+- either kind may take a `ckpt` keyword: a `ptovs.artifacts.Checkpoint` whose
+  `load()` gives the state saved by an interrupted run (or None) and whose
+  `save(state)` stores one atomically. Long training stages call `save` every N
+  iterations, so a killed run resumes from its last checkpoint; the framework
+  deletes the checkpoint once the artifact is complete (and on --force).
 
 `stage_command(...)` registers the stage and returns its click command, which
 adds `--scene`, `--data`, `--set` and `--force`, keys the whole chain before any
@@ -280,6 +285,17 @@ class Chain:
             values[name] = art
         return spec.inputs_cls(**values)
 
+    def inputs_of(self, stage: str) -> Artifact:
+        """The verified artifact of `stage` for this chain, or a MissingInputError."""
+        key = self.key(stage)
+        art = self.ctx.store.lookup(self.scene.name, stage, key)
+        if art is None:
+            raise MissingInputError(
+                f"no {stage} artifact for {self.scene.name} (key {key[:12]}); "
+                f"run: {self.hint(stage)}"
+            )
+        return art
+
     def state(self, stage: str) -> tuple[str, str]:
         """(state, detail) for `ptovs status`: done, partial, missing or stale."""
         store, key = self.ctx.store, self.key(stage)
@@ -288,6 +304,11 @@ class Chain:
         n = store.partial_views(self.scene.name, stage, key)
         if n:
             return "partial", f"{n} views stored; rerun to resume"
+        ckpt = store.checkpoint(self.scene.name, stage, key)
+        if ckpt.exists():
+            step = ckpt.step()
+            at = "" if step is None else f" at iteration {step}"
+            return "partial", f"checkpoint{at}; rerun to resume"
         others = store.others(self.scene.name, stage, key)
         if others:
             old = others[0]
@@ -334,12 +355,16 @@ def execute(chain: Chain, stage: str, *, force: bool = False) -> Artifact:
             scene=scene,
         )
         writer = store.writer(scene, stage, key, attrs)
+        ckpt = store.checkpoint(scene, stage, key)
         if force:
             writer.discard()
+            ckpt.clear()
+        kwargs: dict[str, Any] = {}
+        if "ckpt" in inspect.signature(spec.run).parameters:
+            kwargs["ckpt"] = ckpt
         t0 = time.perf_counter()
         if spec.kind == "views":
             done = writer.done_views()
-            kwargs = {}
             if done:
                 log.info("resuming %s: %d views already stored", stage, len(done))
                 if "skip" in inspect.signature(spec.run).parameters:
@@ -361,12 +386,13 @@ def execute(chain: Chain, stage: str, *, force: bool = False) -> Artifact:
                         writer.write_view(name, datasets)
                         bar.update(1)
         else:
-            result = spec.run(inputs, config)
+            result = spec.run(inputs, config, **kwargs)
             writer.write_root(result)
         elapsed = time.perf_counter() - t0
         art = writer.finish(
             {"timings_json": canonical_json({"run_s": round(elapsed, 3)})}
         )
+        ckpt.clear()
         log.info("wrote %s (%s, %.1f s)", art.path, stage, elapsed)
         return art
 
@@ -402,6 +428,12 @@ def resolve_scene(
             "(PhotoTourism: <scene>/dense/images + dense/sparse; COLMAP: images/ + sparse/0), "
             "or make one with: ptovs synth-scene data --preset tiny"
         )
+    from ptovs.sfm import SfmConfig, photo_dir, posed_scene
+
+    photos = photo_dir(Path(data))
+    if photos is not None:  # unposed photos: SfM first (cached), then a COLMAP scene
+        sfm_config = build_config(SfmConfig, ctx.section("sfm"), "sfm")
+        data = posed_scene(photos, scene_name, ctx.work_dir, sfm_config)
     section = ctx.section("scene", sets)
     config = build_config(SceneConfig, section, "scene")
     return SceneRef(scene_name, Path(data), config, ctx.work_dir)

@@ -68,6 +68,8 @@ class RenderOutput:
     depth: Tensor | None  # [H, W, 1] sum_i z_i alpha_i T_i, unnormalised, no bg
     radii: Tensor  # [N, 2] int32, (0, 0) for culled Gaussians
     n_contrib: Tensor | None  # [H, W] int32 composited Gaussians per pixel
+    means2d: Tensor | None = None  # [N, 2] projected centres; `.retain_grad()` on
+    # it before backward gives the screen-space gradients that densification uses
 
 
 # --- backends ---------------------------------------------------------------
@@ -306,6 +308,7 @@ def render(
         depth=out_depth,
         radii=projected.radii,
         n_contrib=n_contrib,
+        means2d=projected.means2d,
     )
 
 

@@ -12,6 +12,7 @@ import warnings
 from dataclasses import dataclass, replace
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -87,10 +88,10 @@ class Camera:
             The camera, with tensors of `dtype` on `device`.
         """
         return cls(
-            cam_from_world=torch.as_tensor(
-                view.cam_from_world, dtype=dtype, device=device
+            cam_from_world=torch.tensor(
+                np.array(view.cam_from_world), dtype=dtype, device=device
             ),
-            K=torch.as_tensor(view.K, dtype=dtype, device=device),
+            K=torch.tensor(np.array(view.K), dtype=dtype, device=device),
             width=int(view.width),
             height=int(view.height),
         )

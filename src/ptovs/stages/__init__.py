@@ -7,4 +7,6 @@ added here when it exists, never before.
 
 from __future__ import annotations
 
-STAGE_MODULES: dict[str, str] = {}
+STAGE_MODULES: dict[str, str] = {
+    "reconstruct": "ptovs.stages.reconstruct",
+}

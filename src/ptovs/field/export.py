@@ -1,0 +1,43 @@
+"""Export a reconstructed field as a standard 3DGS PLY with one appearance baked in."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from ptovs.field.ply import write_ply
+from ptovs.field.render import WildField
+
+
+def baked_sh(field: WildField, image: str | None = None) -> torch.Tensor:
+    """SH [N, K, 3] with ΔSH of `image`'s embedding (or the neutral one) added.
+
+    The neutral appearance is the mean embedding of the images the field knows.
+    A plain field (no networks) returns its SH unchanged.
+    """
+    if field.nets is None or not field.embeddings:
+        return field.sh
+    if image is not None:
+        emb = field.embeddings_of([image])[0]
+    else:
+        emb = torch.stack(list(field.embeddings.values())).mean(0)
+    with torch.no_grad():
+        field.nets.eval()
+        return field.sh + field.nets.delta_sh(field.sh, field.gaussians.means, emb)
+
+
+def export_field_ply(art, out: str | Path, image: str | None = None) -> int:
+    """Write the reconstruct artifact's Gaussians to `out`; returns their count."""
+    field = WildField.from_artifact(art)
+    root = art.root()
+    sh = baked_sh(field, image)[:, :16].numpy()  # viewers draw up to degree 3
+    write_ply(
+        out,
+        root["means"],
+        sh,
+        root["opacity_logits"],
+        root["log_scales"],
+        root["quats"],
+    )
+    return len(field)

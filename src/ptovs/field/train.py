@@ -1,0 +1,333 @@
+"""Training of the in-the-wild Gaussian field (PAPER_SPEC.md §2), checkpointed.
+
+One random train view per iteration (a seeded permutation per epoch, so the order
+does not depend on where a run was resumed):
+
+    M = f_β(I)            (skipped when wild = false)
+    l = f_α(I ⊕ M)
+    c = SH + f_γ(SH, μ, l) → render → Ĩ
+    L = (1−λ)·L1(w⊙Ĩ, w⊙I) + λ·(1 − SSIM(w⊙Ĩ, w⊙I)) + β·mean(M),  w = 1 − M
+
+with w = 1 and no β term during the mask warm-up. Densify, prune and opacity reset
+follow 3DGS on an iteration schedule given in the config.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from torch.nn import functional as F  # noqa: N812
+from tqdm import tqdm
+
+from ptovs.field.losses import psnr, ssim
+from ptovs.field.model import GaussianModel, LearningRates
+from ptovs.field.render import composite_background, gaussian_colors, in_frustum
+from ptovs.nets import WildNets
+from ptovs.raster import Camera, render
+
+log = logging.getLogger(__name__)
+
+LOG_EVERY = 25
+
+
+@dataclass
+class TrainState:
+    """Everything a run needs to continue, and what it produced."""
+
+    model: GaussianModel
+    nets: WildNets | None
+    nets_opt: torch.optim.Optimizer | None
+    background: torch.Tensor  # [3] logits of the constant background (plain mode)
+    bg_opt: torch.optim.Optimizer
+    step: int = 0
+    grad_accum: torch.Tensor = field(default_factory=lambda: torch.zeros(0))
+    grad_denom: torch.Tensor = field(default_factory=lambda: torch.zeros(0))
+    history: dict[str, list[float]] = field(
+        default_factory=lambda: {"step": [], "loss": [], "psnr": [], "n": [], "sec": []}
+    )
+    seconds: float = 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        """Tensors and plain containers only (loadable with weights_only=True)."""
+        return {
+            "step": self.step,
+            "params": {k: v.detach().clone() for k, v in self.model.params.items()},
+            "opt": self.model.opt.state_dict(),
+            "nets": None if self.nets is None else self.nets.state_dict(),
+            "nets_opt": None if self.nets_opt is None else self.nets_opt.state_dict(),
+            "background": self.background.detach().clone(),
+            "bg_opt": self.bg_opt.state_dict(),
+            "grad_accum": self.grad_accum.clone(),
+            "grad_denom": self.grad_denom.clone(),
+            "history": {k: list(v) for k, v in self.history.items()},
+            "seconds": self.seconds,
+        }
+
+
+def scene_extent(cams: list[Camera]) -> tuple[np.ndarray, float]:
+    """Centre and radius (x 1.1) of the camera centres, as 3DGS normalises scenes."""
+    centers = np.stack(
+        [(-c.cam_from_world[:3, :3].T @ c.cam_from_world[:3, 3]).numpy() for c in cams]
+    )
+    center = centers.mean(0)
+    radius = float(np.linalg.norm(centers - center, axis=1).max()) * 1.1
+    return center, max(radius, 1e-3)
+
+
+def _new_state(
+    cfg: Any, points: tuple[np.ndarray, np.ndarray], extent: float
+) -> TrainState:
+    lr = LearningRates()
+    model = GaussianModel.from_points(points[0], points[1], cfg.sh_degree, lr, extent)
+    nets, nets_opt = None, None
+    if cfg.wild:
+        nets = WildNets(
+            cfg.preset,
+            (cfg.sh_degree + 1) ** 2,
+            mask_concat=cfg.mask_concat,
+            delta_scale=cfg.delta_sh_scale,
+        )
+        nets_opt = torch.optim.Adam(
+            [
+                {"params": nets.f_alpha.parameters(), "lr": cfg.lr_alpha},
+                {"params": nets.f_beta.parameters(), "lr": cfg.lr_beta},
+                {"params": nets.f_gamma.parameters(), "lr": cfg.lr_gamma},
+                {"params": nets.sky.parameters(), "lr": cfg.lr_alpha},
+            ]
+        )
+    background = torch.zeros(3, requires_grad=True)
+    bg_opt = torch.optim.Adam([background], lr=1e-2)
+    n = len(model)
+    return TrainState(
+        model,
+        nets,
+        nets_opt,
+        background,
+        bg_opt,
+        grad_accum=torch.zeros(n),
+        grad_denom=torch.zeros(n),
+    )
+
+
+def _restore(state: TrainState, saved: dict[str, Any]) -> None:
+    m = state.model
+    m.params = {k: v.clone().requires_grad_(True) for k, v in saved["params"].items()}
+    for g in m.opt.param_groups:
+        g["params"] = [m.params[g["name"]]]
+    m.opt.state.clear()
+    m.opt.load_state_dict(saved["opt"])
+    if state.nets is not None:
+        state.nets.load_state_dict(saved["nets"])
+        state.nets_opt.load_state_dict(saved["nets_opt"])
+    with torch.no_grad():
+        state.background.copy_(saved["background"])
+    state.bg_opt.load_state_dict(saved["bg_opt"])
+    state.step = int(saved["step"])
+    state.grad_accum = saved["grad_accum"].clone()
+    state.grad_denom = saved["grad_denom"].clone()
+    state.history = {k: list(v) for k, v in saved["history"].items()}
+    state.seconds = float(saved["seconds"])
+
+
+def view_order(step: int, n: int, seed: int) -> int:
+    """The view of a step: a seeded permutation per epoch (resume-independent)."""
+    epoch, pos = divmod(step, n)
+    gen = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
+    return int(torch.randperm(n, generator=gen)[pos])
+
+
+def train(
+    cfg: Any,
+    images: list[np.ndarray],  # train images [H, W, 3] float32
+    cams: list[Camera],
+    points: tuple[np.ndarray, np.ndarray],  # xyz [P, 3], rgb [P, 3] uint8
+    *,
+    load: Callable[[], dict | None] = lambda: None,
+    save: Callable[[dict], None] = lambda state: None,
+    desc: str = "reconstruct",
+) -> TrainState:
+    """Train the field; resume from `load()`, call `save(state)` every checkpoint.
+
+    Args:
+        cfg: the reconstruct stage config (iterations, schedule, losses, nets).
+        images: the train images at working size.
+        cams: their cameras.
+        points: the sparse cloud that initialises the Gaussians.
+        load: returns a saved state dict, or None to start fresh.
+        save: stores a state dict (tensors and plain containers).
+        desc: progress bar label.
+
+    Returns:
+        The final TrainState.
+    """
+    torch.manual_seed(cfg.seed)
+    _, extent = scene_extent(cams)
+    if len(points[0]) == 0:
+        raise ValueError("the scene has no 3D points to initialise the Gaussians")
+    state = _new_state(cfg, points, extent)
+    saved = load()
+    if saved is not None:
+        _restore(state, saved)
+        log.info("resumed at iteration %d of %d", state.step, cfg.iterations)
+    model, nets = state.model, state.nets
+    tensors = [torch.from_numpy(np.ascontiguousarray(im)) for im in images]
+    prepared = [nets.prepare(im) for im in images] if nets is not None else []
+    n_views = len(images)
+    bar = tqdm(
+        total=cfg.iterations,
+        initial=state.step,
+        desc=desc,
+        unit="it",
+        disable=None,
+        leave=False,
+    )
+    t_start = time.perf_counter() - state.seconds
+    recent: list[tuple[float, float]] = []
+    while state.step < cfg.iterations:
+        step = state.step
+        i = view_order(step, n_views, cfg.seed)
+        cam, gt = cams[i], tensors[i]
+        model.set_means_lr(step, cfg.iterations)
+        degree = min(cfg.sh_degree, step // cfg.sh_increase_every)
+        masked = nets is not None and step >= cfg.mask_warmup
+
+        emb, mask_lo = None, None
+        if nets is not None:
+            a_in, b_in = prepared[i]
+            mask_lo = nets.transient(b_in[None])  # [1, 1, s, s]
+            emb = nets.embed(a_in[None], mask_lo.detach())[0]
+        g = model.gaussians()
+        cols = gaussian_colors(
+            g.means, model.sh, degree, cam, nets, emb, visible_only=cfg.visible_only
+        )
+        bg = torch.sigmoid(state.background) if nets is None else None
+        out = render(g, cam, cols, background=bg, backend=cfg.backend, depth=False)
+        out.means2d.retain_grad()
+        pred = out.image
+        if nets is not None:
+            pred = composite_background(pred, out.alpha, cam, nets, emb)
+        if masked:
+            m = F.interpolate(mask_lo, size=(cam.height, cam.width), mode="bilinear")
+            w = (1.0 - m[0, 0])[..., None]
+            l1 = ((pred - gt) * w).abs().mean()
+            loss = (
+                (1 - cfg.ssim_lambda) * l1
+                + cfg.ssim_lambda * (1 - ssim(pred * w, gt * w))
+                + cfg.mask_reg * mask_lo.mean()
+            )
+        else:
+            l1 = (pred - gt).abs().mean()
+            loss = (1 - cfg.ssim_lambda) * l1 + cfg.ssim_lambda * (1 - ssim(pred, gt))
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"non-finite loss at iteration {step} (view {i})")
+        loss.backward()
+
+        with torch.no_grad():
+            # densification statistics: screen-space gradient in 3DGS's NDC units
+            g2 = out.means2d.grad
+            seen = (out.radii > 0).any(1)
+            if g2 is not None:
+                gn = torch.sqrt(
+                    (g2[:, 0] * cam.width * 0.5) ** 2
+                    + (g2[:, 1] * cam.height * 0.5) ** 2
+                )
+                state.grad_accum[seen] += gn[seen]
+                state.grad_denom[seen] += 1
+        model.opt.step()
+        model.opt.zero_grad(set_to_none=True)
+        if nets is not None:
+            state.nets_opt.step()
+            state.nets_opt.zero_grad(set_to_none=True)
+        else:
+            state.bg_opt.step()
+            state.bg_opt.zero_grad(set_to_none=True)
+
+        state.step = step = step + 1
+        _densify_schedule(cfg, state, step)
+        recent.append((float(loss.detach()), psnr(pred.detach().clamp(0, 1), gt)))
+        if step % LOG_EVERY == 0 or step == cfg.iterations:
+            lo, ps = np.mean([r[0] for r in recent]), np.mean([r[1] for r in recent])
+            recent.clear()
+            state.seconds = time.perf_counter() - t_start
+            for k, v in zip(
+                ("step", "loss", "psnr", "n", "sec"),
+                (step, lo, ps, len(model), state.seconds),
+                strict=True,
+            ):
+                state.history[k].append(float(v))
+            bar.set_postfix(loss=f"{lo:.4f}", psnr=f"{ps:.2f}", gaussians=len(model))
+        bar.update(1)
+        if step % cfg.checkpoint_every == 0 and step < cfg.iterations:
+            state.seconds = time.perf_counter() - t_start
+            save(state.to_dict())
+    bar.close()
+    state.seconds = time.perf_counter() - t_start
+    return state
+
+
+def _densify_schedule(cfg: Any, state: TrainState, step: int) -> None:
+    model = state.model
+    # densification (and the opacity reset that goes with it) ends by 60 % of the
+    # run at the latest, so the last iterations always refine a settled set
+    until = min(cfg.densify_until, int(0.6 * cfg.iterations))
+    if until <= step or step < cfg.densify_from:
+        return
+    if step % cfg.densify_every == 0:
+        grads = state.grad_accum / state.grad_denom.clamp_min(1)
+        gen = torch.Generator().manual_seed(cfg.seed * 7_919 + step)
+        n0 = len(model)
+        cloned, split = model.densify(
+            grads, cfg.densify_grad, cfg.percent_dense, gen, cfg.max_gaussians
+        )
+        with torch.no_grad():
+            opac = torch.sigmoid(model.params["opacity_logits"])
+            big = (
+                torch.exp(model.params["log_scales"]).max(1).values > 0.1 * model.extent
+            )
+            prune = (opac < cfg.prune_opacity) | big
+            if prune.all():  # never prune everything
+                prune[:] = False
+        model.keep(~prune)
+        log.debug(
+            "step %d: %d -> %d Gaussians (+%d cloned, +%d split, -%d pruned)",
+            step,
+            n0,
+            len(model),
+            cloned,
+            split,
+            int(prune.sum()),
+        )
+        state.grad_accum = torch.zeros(len(model))
+        state.grad_denom = torch.zeros(len(model))
+    if step % cfg.opacity_reset_every == 0:
+        model.reset_opacity()
+
+
+@torch.no_grad()
+def visibility(
+    model: GaussianModel, cams: list[Camera], backend: str = "auto"
+) -> torch.Tensor:
+    """[N] total blend weight (sum over pixels of alpha*T) over the given views."""
+    g = model.gaussians()
+    g = type(g)(*(t.detach() for t in (g.means, g.quats, g.scales, g.opacities)))
+    total = torch.zeros(len(model))
+    for cam in cams:
+        ones = torch.ones(len(model), 1, requires_grad=True)
+        with torch.enable_grad():
+            out = render(g, cam, ones, backend=backend, depth=False)
+            out.image.sum().backward()
+        total += ones.grad[:, 0]
+    return total
+
+
+def unseen_count(weights: torch.Tensor, threshold: float) -> int:
+    return int((weights < threshold).sum())
+
+
+__all__ = ["TrainState", "in_frustum", "scene_extent", "train", "visibility"]

@@ -1,0 +1,320 @@
+"""The in-the-wild appearance networks of WE-GS as the paper uses them (PAPER_SPEC.md §2).
+
+- f_α `AppearanceEncoder`: image (+ transient mask) -> appearance embedding l ∈ R^32.
+- f_β `TransientNet`: image -> transient mask M in [0, 1] (U-Lite-style axial U-Net).
+- f_γ `ColorNet`: per Gaussian (flattened SH, PE(μ), l) -> ΔSH, tanh-bounded.
+  `delta_scale` multiplies the tanh: the authors' 1 bounds the DC colour change
+  at ±C0 = ±0.28, too little to turn a sunlit façade into a night photo; ptovs
+  trains with a larger bound by default (stage option `delta_sh_scale`).
+
+Two presets with the same structure: `authors` (exactly the released layer sizes:
+256² inputs, widths 128…512, FC256; needed to import their checkpoints) and `cpu`
+(64² inputs and narrower layers, about 100× fewer FLOPs per step; see
+docs/benchmarks.md for what it loses at equal iterations). The sky head
+(`SkyNet`, `WildNets.background`) is ours: the authors render on black, which leaves
+the sky to floaters; with an imported model it is absent and the background is black.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor, nn
+from torch.nn import functional as F  # noqa: N812
+
+
+@dataclass(frozen=True)
+class NetPreset:
+    """Layer sizes of the three networks."""
+
+    alpha_res: int  # f_α input side (images are resized to a square)
+    alpha_widths: tuple[int, ...]  # stem, then one per stride-2 block
+    beta_res: int  # f_β input side (a multiple of 2**(len(beta_widths) - 1))
+    beta_widths: tuple[int, ...]  # stem, then one per encoder block
+    gamma_width: int
+    gamma_head: int
+    embed_dim: int = 32
+    pe_octaves: int = 4
+
+
+PRESETS: dict[str, NetPreset] = {
+    "authors": NetPreset(
+        alpha_res=256,
+        alpha_widths=(128, 256, 512, 512, 512),
+        beta_res=256,
+        beta_widths=(16, 32, 64, 128, 256, 512),
+        gamma_width=256,
+        gamma_head=128,
+    ),
+    "cpu": NetPreset(
+        alpha_res=64,
+        alpha_widths=(16, 32, 64, 64, 64),
+        beta_res=64,
+        beta_widths=(8, 16, 32, 32, 64, 64),
+        gamma_width=32,
+        gamma_head=32,
+    ),
+}
+
+
+def positional_encoding(x: Tensor, octaves: int) -> Tensor:
+    """[x, sin(2^k x), cos(2^k x) for k < octaves] -> [n, 3 + 6 * octaves]."""
+    out = [x]
+    for k in range(octaves):
+        out += [torch.sin(x * 2.0**k), torch.cos(x * 2.0**k)]
+    return torch.cat(out, -1)
+
+
+class AppearanceEncoder(nn.Module):
+    """f_α: ReflPad3 + Conv7 + ReLU, stride-2 Conv4 blocks, pooling, Conv1x1 -> l."""
+
+    def __init__(self, widths: tuple[int, ...], embed_dim: int, mask_concat: str):
+        super().__init__()
+        if mask_concat not in ("features", "input"):
+            raise ValueError(f"mask_concat must be features or input: {mask_concat!r}")
+        self.mask_concat = mask_concat
+        c_in = 4 if mask_concat == "input" else 3
+        layers: list[nn.Module] = [
+            nn.ReflectionPad2d(3),
+            nn.Conv2d(c_in, widths[0], 7),
+            nn.ReLU(inplace=True),
+        ]
+        for a, b in zip(widths[:-1], widths[1:], strict=True):
+            layers += [nn.ReflectionPad2d(1), nn.Conv2d(a, b, 4, 2), nn.ReLU(True)]
+        self.features = nn.Sequential(*layers)
+        extra = 1 if mask_concat == "features" else 0
+        self.head = nn.Conv2d(widths[-1] + extra, embed_dim, 1)
+
+    def forward(self, image: Tensor, mask: Tensor) -> Tensor:
+        """image [B, 3, S, S], mask [B, 1, s, s] (any s) -> l [B, embed_dim]."""
+        if self.mask_concat == "input":
+            m = F.interpolate(mask, size=image.shape[-2:], mode="bilinear")
+            feat = self.features(torch.cat((image, m), 1))
+        else:  # the paper's reading: concatenate with the CNN's last feature map
+            feat = self.features(image)
+            m = F.adaptive_avg_pool2d(mask, feat.shape[-2:])
+            feat = torch.cat((feat, m), 1)
+        return self.head(F.adaptive_avg_pool2d(feat, 1)).flatten(1)
+
+
+class _AxialDW(nn.Module):
+    """x + depthwise (k x 1) + depthwise (1 x k), optionally dilated."""
+
+    def __init__(self, c: int, k: int, dilation: int = 1):
+        super().__init__()
+        pad = dilation * (k - 1) // 2
+        self.dw_h = nn.Conv2d(
+            c, c, (k, 1), padding=(pad, 0), groups=c, dilation=dilation
+        )
+        self.dw_w = nn.Conv2d(
+            c, c, (1, k), padding=(0, pad), groups=c, dilation=dilation
+        )
+
+    def forward(self, x: Tensor) -> Tensor:
+        return x + self.dw_h(x) + self.dw_w(x)
+
+
+class _Down(nn.Module):
+    def __init__(self, c_in: int, c_out: int):
+        super().__init__()
+        self.dw = _AxialDW(c_in, 7)
+        self.bn = nn.BatchNorm2d(c_in)
+        self.pw = nn.Conv2d(c_in, c_out, 1)
+
+    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        skip = self.bn(self.dw(x))
+        return F.gelu(F.max_pool2d(self.pw(skip), 2)), skip
+
+
+class _Bottleneck(nn.Module):
+    def __init__(self, c: int):
+        super().__init__()
+        g = max(1, c // 4)
+        self.pw1 = nn.Conv2d(c, g, 1)
+        self.dws = nn.ModuleList(_AxialDW(g, 3, d) for d in (1, 2, 3))
+        self.bn = nn.BatchNorm2d(4 * g)
+        self.pw2 = nn.Conv2d(4 * g, c, 1)
+
+    def forward(self, x: Tensor) -> Tensor:
+        x = self.pw1(x)
+        x = torch.cat([x] + [dw(x) for dw in self.dws], 1)
+        return F.gelu(self.pw2(self.bn(x)))
+
+
+class _Up(nn.Module):
+    def __init__(self, c_in: int, c_out: int):
+        super().__init__()
+        self.pw = nn.Conv2d(c_in + c_out, c_out, 1)
+        self.bn = nn.BatchNorm2d(c_out)
+        self.dw = _AxialDW(c_out, 7)
+        self.pw2 = nn.Conv2d(c_out, c_out, 1)
+
+    def forward(self, x: Tensor, skip: Tensor) -> Tensor:
+        x = F.interpolate(x, size=skip.shape[-2:], mode="nearest")
+        x = self.pw(torch.cat((x, skip), 1))
+        return F.gelu(self.pw2(self.dw(self.bn(x))))
+
+
+class TransientNet(nn.Module):
+    """f_β: a U-Lite-style U-Net (axial depthwise blocks) -> M in [0, 1], 1 = transient."""
+
+    def __init__(self, widths: tuple[int, ...]):
+        super().__init__()
+        self.stem = nn.Conv2d(3, widths[0], 7, padding=3)
+        pairs = list(zip(widths[:-1], widths[1:], strict=True))
+        self.down = nn.ModuleList(_Down(a, b) for a, b in pairs)
+        self.mid = _Bottleneck(widths[-1])
+        self.up = nn.ModuleList(_Up(b, a) for a, b in reversed(pairs))
+        self.out = nn.Conv2d(widths[0], 1, 1)
+
+    def forward(self, image: Tensor) -> Tensor:
+        """image [B, 3, S, S] -> M [B, 1, S, S]."""
+        x = self.stem(image)
+        skips = []
+        for block in self.down:
+            x, skip = block(x)
+            skips.append(skip)
+        x = self.mid(x)
+        for block, skip in zip(self.up, reversed(skips), strict=True):
+            x = block(x, skip)
+        return torch.sigmoid(self.out(x))
+
+
+class ColorNet(nn.Module):
+    """f_γ: (SH, PE(μ), l) -> ΔSH via 3 FC, concat input, 3 FC, concat SH, FC, FC, tanh."""
+
+    def __init__(self, n_coeffs: int, preset: NetPreset, delta_scale: float = 1.0):
+        super().__init__()
+        self.n_coeffs = n_coeffs
+        self.delta_scale = float(delta_scale)
+        self.octaves = preset.pe_octaves
+        sh = 3 * n_coeffs
+        inp = sh + 3 + 6 * preset.pe_octaves + preset.embed_dim
+        w, head = preset.gamma_width, preset.gamma_head
+        self.block1 = nn.ModuleList(
+            [nn.Linear(inp, w), nn.Linear(w, w), nn.Linear(w, w)]
+        )
+        self.block2 = nn.ModuleList(
+            [nn.Linear(w + inp, w), nn.Linear(w, w), nn.Linear(w, w)]
+        )
+        self.head = nn.Linear(w + sh, head)
+        self.out = nn.Linear(head, sh)
+
+    def forward(self, sh: Tensor, means: Tensor, embedding: Tensor) -> Tensor:
+        """sh [n, K, 3], means [n, 3], embedding [D] -> ΔSH [n, K, 3] in (-1, 1)."""
+        n = sh.shape[0]
+        flat = sh.reshape(n, -1)
+        x0 = torch.cat(
+            (
+                flat,
+                positional_encoding(means, self.octaves),
+                embedding.reshape(1, -1).expand(n, -1),
+            ),
+            1,
+        )
+        x = x0
+        for layer in self.block1:
+            x = F.relu(layer(x))
+        x = torch.cat((x, x0), 1)
+        for layer in self.block2:
+            x = F.relu(layer(x))
+        x = F.relu(self.head(torch.cat((x, flat), 1)))
+        delta = torch.tanh(self.out(x)) * self.delta_scale
+        return delta.reshape(n, self.n_coeffs, 3)
+
+
+class SkyNet(nn.Module):
+    """Sky colour per pixel from the ray direction and the embedding (ours).
+
+    Photos of a landmark are mostly sky and ground around it; the sky changes with
+    every photo and is not a surface, so Gaussians model it badly (floaters). A
+    small MLP on (PE(direction), l) paints what the Gaussians leave transparent:
+    image = render + T_final · sky.
+    """
+
+    def __init__(self, embed_dim: int, width: int = 32, octaves: int = 2):
+        super().__init__()
+        self.octaves = octaves
+        self.fc1 = nn.Linear(3 + 6 * octaves + embed_dim, width)
+        self.fc2 = nn.Linear(width, 3)
+
+    def forward(self, dirs: Tensor, embedding: Tensor) -> Tensor:
+        """dirs [..., 3] unit, embedding [D] -> RGB [..., 3] in (0, 1)."""
+        shape = dirs.shape[:-1]
+        d = dirs.reshape(-1, 3)
+        x = torch.cat(
+            (positional_encoding(d, self.octaves), embedding.expand(d.shape[0], -1)), 1
+        )
+        return torch.sigmoid(self.fc2(F.relu(self.fc1(x)))).reshape(*shape, 3)
+
+
+class WildNets(nn.Module):
+    """f_α, f_β, f_γ and the background head, with their image preprocessing."""
+
+    def __init__(
+        self,
+        preset: str | NetPreset,
+        n_coeffs: int,
+        *,
+        mask_concat: str = "features",
+        background: bool = True,
+        delta_scale: float = 1.0,
+    ):
+        super().__init__()
+        self.preset = PRESETS[preset] if isinstance(preset, str) else preset
+        p = self.preset
+        if p.beta_res % 2 ** (len(p.beta_widths) - 1):
+            raise ValueError("beta_res must be divisible by 2**(len(beta_widths) - 1)")
+        self.f_alpha = AppearanceEncoder(p.alpha_widths, p.embed_dim, mask_concat)
+        self.f_beta = TransientNet(p.beta_widths)
+        self.f_gamma = ColorNet(n_coeffs, p, delta_scale)
+        self.sky = SkyNet(p.embed_dim) if background else None
+        nn.init.zeros_(self.f_gamma.out.weight)  # ΔSH = 0 at the start
+        nn.init.zeros_(self.f_gamma.out.bias)
+
+    @property
+    def embed_dim(self) -> int:
+        return self.preset.embed_dim
+
+    def prepare(self, image: np.ndarray) -> tuple[Tensor, Tensor]:
+        """RGB [H, W, 3] in [0, 1] -> (f_α input [3, S, S], f_β input [3, s, s])."""
+        out = []
+        for res in (self.preset.alpha_res, self.preset.beta_res):
+            small = cv2.resize(image, (res, res), interpolation=cv2.INTER_AREA)
+            out.append(torch.from_numpy(np.ascontiguousarray(small)).permute(2, 0, 1))
+        return out[0].float(), out[1].float()
+
+    def transient(self, beta_in: Tensor) -> Tensor:
+        """[B, 3, s, s] -> M [B, 1, s, s]."""
+        return self.f_beta(beta_in)
+
+    def embed(self, alpha_in: Tensor, mask: Tensor) -> Tensor:
+        """[B, 3, S, S] and M [B, 1, s, s] -> l [B, D]."""
+        return self.f_alpha(alpha_in, mask)
+
+    def background(self, dirs: Tensor, embedding: Tensor) -> Tensor:
+        """Ray directions [H, W, 3] and l [D] -> RGB background [H, W, 3].
+
+        Black without the sky head (imported models: the authors render on black).
+        """
+        if self.sky is None:
+            return dirs.new_zeros(dirs.shape)
+        return self.sky(dirs, embedding)
+
+    def delta_sh(self, sh: Tensor, means: Tensor, embedding: Tensor) -> Tensor:
+        """ΔSH [n, K, 3] for n Gaussians under embedding [D]."""
+        return self.f_gamma(sh, means, embedding)
+
+    @torch.no_grad()
+    def embed_image(self, image: np.ndarray) -> tuple[Tensor, Tensor]:
+        """(l [D], M [1, 1, s, s]) of one image, in eval mode."""
+        was = self.training
+        self.eval()
+        a, b = self.prepare(image)
+        mask = self.transient(b[None])
+        emb = self.embed(a[None], mask)[0]
+        self.train(was)
+        return emb, mask

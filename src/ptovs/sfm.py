@@ -1,0 +1,482 @@
+"""Structure from motion for a folder of unposed photos (pycolmap 4.x, CPU).
+
+`ptovs <stage> --data DIR` where DIR holds only photos (`DIR/images/*` or `DIR/*`,
+no COLMAP model, no split file) runs this first. The result is cached in the work
+dir under a content key (photos' sha256 + `[sfm]` options), like any artifact, and
+materialised as an ordinary COLMAP scene, `<work>/<scene>/sfm/<key[:12]>/`:
+
+    images/        undistorted photos (PINHOLE)
+    sparse/        the undistorted COLMAP model
+    <scene>.tsv    split: every registered photo is train except a held-out
+                   `test_fraction` (default 10 %, every k-th name in sorted order)
+
+so every later stage reads it like a posed scene.
+
+Choices (measured on the bench preset, docs/benchmarks.md):
+- Photos are checked first: unreadable files and truncated JPEGs (no end-of-image
+  marker: libjpeg decodes them with a warning that names no file) are skipped and
+  listed; grey, 16-bit, alpha photos are converted to 8-bit RGB copies.
+- SIFT on CPU with `max_image_size` 1024 and `max_num_features` 4096.
+- Pairing: exhaustive up to `exhaustive_max` photos (60). Beyond that, `retrieval`
+  (default): a bag of visual words learnt on the collection's own SIFT descriptors
+  (k-means, tf-idf, cosine) picks each photo's `retrieval_k` nearest photos, because
+  no vocabulary tree can be downloaded here; `vocabtree` uses a tree file the user
+  gives (`vocab_tree`); `sequential` suits video frames.
+- Two-view geometry and the mapper need `min_num_matches` (30) inliers: repeated
+  façade textures give many wrong pairs at COLMAP's default 15. The structure-less
+  registration fallback is off (it took most of 293 s on one bench image).
+- One camera per photo (`camera_mode = "per_image"`): Internet photos differ in
+  focal length and size. SIMPLE_RADIAL, then `pycolmap.undistort_images`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import logging
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+
+from ptovs.artifacts import Store, json_dataset, read_json_dataset
+from ptovs.errors import InputError, MissingInputError
+
+log = logging.getLogger(__name__)
+
+NAME = "sfm"
+VERSION = 1
+IMAGE_EXTS = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp", ".jp2"}
+MIN_REGISTERED = 3
+
+
+@dataclass(frozen=True)
+class SfmConfig:
+    """How unposed photos are posed (config section `[sfm]`)."""
+
+    max_image_size: int = 1024
+    max_num_features: int = 4096
+    min_num_matches: int = 30
+    """Minimum verified inliers for a pair, and matches for the mapper."""
+    pairing: Literal["auto", "exhaustive", "retrieval", "vocabtree", "sequential"] = (
+        "auto"
+    )
+    """"auto": exhaustive up to exhaustive_max photos, else retrieval."""
+    exhaustive_max: int = 60
+    retrieval_k: int = 20
+    """Nearest photos matched per photo by the retrieval pairing."""
+    vocab_tree: str = ""
+    """A COLMAP vocabulary-tree file for pairing = "vocabtree" (none can be downloaded)."""
+    camera_mode: Literal["per_image", "single", "auto"] = "per_image"
+    test_fraction: float = 0.1
+    """Share of registered photos held out as the test split."""
+    structure_less: bool = False
+    """COLMAP's structure-less registration fallback (slow on hard photos)."""
+    seed: int = 0
+
+
+# ------------------------------------------------------------------ detection
+
+
+def photo_dir(path: Path) -> Path | None:
+    """The photo folder if `path` is an unposed collection, else None."""
+    path = Path(path)
+    if (path / "dense").is_dir() or (path / "sparse").is_dir():
+        return None
+    for cand in (path / "images", path):
+        if cand.is_dir() and any(
+            p.suffix.lower() in IMAGE_EXTS for p in cand.iterdir() if p.is_file()
+        ):
+            return cand
+    return None
+
+
+def list_photos(folder: Path) -> list[Path]:
+    return sorted(
+        p
+        for p in Path(folder).iterdir()
+        if p.is_file() and p.suffix.lower() in IMAGE_EXTS
+    )
+
+
+def jpeg_truncated(path: Path) -> bool:
+    """True for a JPEG whose data does not end with the end-of-image marker."""
+    if path.suffix.lower() not in (".jpg", ".jpeg"):
+        return False
+    with open(path, "rb") as fh:
+        head = fh.read(2)
+        fh.seek(0, os.SEEK_END)
+        size = fh.tell()
+        fh.seek(max(0, size - 64))
+        tail = fh.read().rstrip(b"\x00")
+    return head == b"\xff\xd8" and not tail.endswith(b"\xff\xd9")
+
+
+def _stage_photos(photos: list[Path], out: Path) -> tuple[list[str], dict[str, str]]:
+    """Copy usable photos into `out` as 8-bit RGB; returns (names, {skipped: why})."""
+    out.mkdir(parents=True, exist_ok=True)
+    names, skipped = [], {}
+    for src in photos:
+        if jpeg_truncated(src):
+            skipped[src.name] = "truncated JPEG (no end-of-image marker)"
+            log.warning(
+                "photo %s is a truncated JPEG; skipped (re-copy or re-export it)", src
+            )
+            continue
+        img = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            skipped[src.name] = "cannot be decoded"
+            log.warning("photo %s cannot be decoded; skipped", src)
+            continue
+        if img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3:
+            dst = out / src.name
+            shutil.copyfile(src, dst)
+        else:
+            if img.dtype == np.uint16:
+                img = (img / 257.0).round().astype(np.uint8)
+            elif img.dtype != np.uint8:
+                img = (np.clip(img, 0, 1) * 255).round().astype(np.uint8)
+            if img.ndim == 2:
+                img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+            elif img.shape[2] == 2:
+                img = cv2.cvtColor(img[:, :, 0], cv2.COLOR_GRAY2BGR)
+            elif img.shape[2] == 4:
+                img = img[:, :, :3]
+            dst = out / (src.stem + ".png")
+            if dst.exists() and dst.name != src.name:
+                skipped[src.name] = f"name clash with {dst.name}"
+                continue
+            cv2.imwrite(str(dst), img)
+            log.info("photo %s converted to 8-bit RGB as %s", src.name, dst.name)
+        names.append(dst.name)
+    return names, skipped
+
+
+def _retrieval_pairs(db_path: Path, k: int, seed: int) -> list[tuple[str, str]]:
+    """Each photo with its k most similar photos (bag of words on its own SIFT)."""
+    import pycolmap
+
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        images = db.read_all_images()
+        descs = {}
+        for im in images:
+            d = db.read_descriptors(im.image_id)
+            d = np.asarray(getattr(d, "data", d), np.float32)
+            descs[im.name] = d
+    finally:
+        db.close()
+    names = sorted(descs)
+    rng = np.random.default_rng(seed)
+    sample = np.concatenate(
+        [
+            d[rng.choice(len(d), min(len(d), 200), replace=False)]
+            for d in descs.values()
+            if len(d)
+        ]
+    )
+    n_words = int(min(512, max(8, len(sample) // 20)))
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 1.0)
+    cv2.setRNGSeed(seed)
+    _, _, centers = cv2.kmeans(
+        sample, n_words, None, criteria, 1, cv2.KMEANS_PP_CENTERS
+    )
+    hist = np.zeros((len(names), n_words), np.float32)
+    for i, n in enumerate(names):
+        d = descs[n]
+        if len(d):
+            d2 = (d**2).sum(1)[:, None] - 2 * d @ centers.T + (centers**2).sum(1)[None]
+            hist[i] = np.bincount(d2.argmin(1), minlength=n_words)
+    idf = np.log(len(names) / (1.0 + (hist > 0).sum(0)))
+    tfidf = hist * idf
+    tfidf /= np.linalg.norm(tfidf, axis=1, keepdims=True).clip(1e-9)
+    sim = tfidf @ tfidf.T
+    np.fill_diagonal(sim, -np.inf)
+    pairs = set()
+    for i in range(len(names)):
+        for j in np.argsort(-sim[i])[:k]:
+            a, b = sorted((names[i], names[int(j)]))
+            pairs.add((a, b))
+    return sorted(pairs)
+
+
+def run_sfm(photo_folder: Path, workdir: Path, config: SfmConfig) -> dict[str, Any]:
+    """Pose the photos; returns the report and the paths of the undistorted model.
+
+    Raises:
+        InputError: fewer than 3 photos could be registered (with what to try).
+    """
+    import pycolmap
+
+    pycolmap.logging.minloglevel = 2
+    photos = list_photos(photo_folder)
+    if not photos:
+        raise MissingInputError(
+            f"{photo_folder} holds no photos ({sorted(IMAGE_EXTS)})"
+        )
+    t0 = time.perf_counter()
+    staged = workdir / "input"
+    names, skipped = _stage_photos(photos, staged)
+    if len(names) < MIN_REGISTERED:
+        raise InputError(
+            f"{photo_folder}: only {len(names)} usable photo(s) of {len(photos)}; "
+            f"SfM needs at least {MIN_REGISTERED} overlapping photos"
+        )
+    db = workdir / "database.db"
+    db.unlink(missing_ok=True)
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "SIMPLE_RADIAL"
+    ext = pycolmap.FeatureExtractionOptions()
+    ext.num_threads = min(os.cpu_count() or 1, 8)
+    ext.max_image_size = config.max_image_size
+    ext.sift.max_num_features = config.max_num_features
+    mode = {
+        "per_image": pycolmap.CameraMode.PER_IMAGE,
+        "single": pycolmap.CameraMode.SINGLE,
+        "auto": pycolmap.CameraMode.AUTO,
+    }[config.camera_mode]
+    pycolmap.extract_features(
+        db,
+        staged,
+        image_names=names,
+        camera_mode=mode,
+        reader_options=reader,
+        extraction_options=ext,
+        device=pycolmap.Device.cpu,
+    )
+    t_extract = time.perf_counter() - t0
+    verify = pycolmap.TwoViewGeometryOptions()
+    verify.min_num_inliers = config.min_num_matches
+    match = pycolmap.FeatureMatchingOptions()
+    match.num_threads = ext.num_threads
+    pairing = config.pairing
+    if pairing == "auto":
+        pairing = "exhaustive" if len(names) <= config.exhaustive_max else "retrieval"
+    t1 = time.perf_counter()
+    if pairing == "exhaustive":
+        pycolmap.match_exhaustive(
+            db,
+            matching_options=match,
+            verification_options=verify,
+            device=pycolmap.Device.cpu,
+        )
+    elif pairing == "sequential":
+        pycolmap.match_sequential(
+            db,
+            matching_options=match,
+            verification_options=verify,
+            device=pycolmap.Device.cpu,
+        )
+    elif pairing == "vocabtree":
+        if not config.vocab_tree or not Path(config.vocab_tree).is_file():
+            raise MissingInputError(
+                f"sfm.vocab_tree = {config.vocab_tree!r} is not a file; pairing = "
+                "'vocabtree' needs a COLMAP vocabulary-tree file you provide (none can "
+                "be downloaded here), or use pairing = 'retrieval'"
+            )
+        opts = pycolmap.VocabTreePairingOptions()
+        opts.vocab_tree_path = str(config.vocab_tree)
+        pycolmap.match_vocabtree(
+            db,
+            matching_options=match,
+            pairing_options=opts,
+            verification_options=verify,
+            device=pycolmap.Device.cpu,
+        )
+    else:
+        pairs = _retrieval_pairs(db, config.retrieval_k, config.seed)
+        pair_file = workdir / "pairs.txt"
+        pair_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+        opts = pycolmap.ImportedPairingOptions()
+        opts.match_list_path = str(pair_file)
+        pycolmap.match_image_pairs(
+            db,
+            matching_options=match,
+            pairing_options=opts,
+            verification_options=verify,
+            device=pycolmap.Device.cpu,
+        )
+    t_match = time.perf_counter() - t1
+
+    t2 = time.perf_counter()
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.num_threads = ext.num_threads
+    opts.min_num_matches = config.min_num_matches
+    opts.structure_less_registration_fallback = config.structure_less
+    opts.random_seed = config.seed
+    sparse = workdir / "sparse_raw"
+    shutil.rmtree(sparse, ignore_errors=True)
+    sparse.mkdir(parents=True)
+    recs = pycolmap.incremental_mapping(db, staged, sparse, options=opts)
+    t_map = time.perf_counter() - t2
+    best = max(recs.values(), key=lambda r: r.num_reg_images(), default=None)
+    registered = (
+        sorted(best.images[i].name for i in best.reg_image_ids()) if best else []
+    )
+    unregistered = sorted(set(names) - set(registered))
+    report = {
+        "photos": len(photos),
+        "usable": len(names),
+        "registered": len(registered),
+        "unregistered": unregistered,
+        "skipped": skipped,
+        "pairing": pairing,
+        "models": len(recs),
+        "seconds": {
+            "extract": round(t_extract, 2),
+            "match": round(t_match, 2),
+            "map": round(t_map, 2),
+        },
+    }
+    if len(registered) < MIN_REGISTERED:
+        raise InputError(
+            f"{photo_folder}: SfM registered {len(registered)} of {len(photos)} photos "
+            f"(at least {MIN_REGISTERED} are needed). Try: more photos that overlap "
+            "(each part of the landmark seen from several nearby viewpoints), "
+            "--set scene... or `ptovs --set sfm.min_num_matches=15` (fewer inliers "
+            "per pair), `--set sfm.pairing=exhaustive`, or pose the photos with "
+            "COLMAP yourself and pass the scene folder"
+        )
+    if unregistered:
+        log.warning(
+            "SfM registered %d of %d photos; not registered: %s",
+            len(registered),
+            len(photos),
+            ", ".join(unregistered[:10]) + (" ..." if len(unregistered) > 10 else ""),
+        )
+    model_dir = sparse / "best"
+    model_dir.mkdir()
+    best.write(str(model_dir))
+    return {"report": report, "model_dir": model_dir, "staged": staged}
+
+
+def _split_names(names: list[str], fraction: float) -> set[str]:
+    """Every k-th name (sorted) is test, k = round(1 / fraction)."""
+    if fraction <= 0 or len(names) < 2:
+        return set()
+    k = max(2, round(1.0 / fraction))
+    return {n for i, n in enumerate(sorted(names)) if i % k == k // 2}
+
+
+def _materialise(
+    model_dir: Path, staged: Path, out: Path, scene: str, fraction: float
+) -> None:
+    import pycolmap
+
+    tmp = out.with_name(out.name + f".{os.getpid()}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    pycolmap.undistort_images(str(tmp), str(model_dir), str(staged))
+    rec = pycolmap.Reconstruction(str(tmp / "sparse"))
+    names = sorted(rec.images[i].name for i in rec.reg_image_ids())
+    test = _split_names(names, fraction)
+    with open(tmp / f"{scene}.tsv", "w") as fh:
+        fh.write("filename\tid\tsplit\tdataset\n")
+        for i, n in enumerate(names):
+            fh.write(f"{n}\t{i}\t{'test' if n in test else 'train'}\t{scene}\n")
+    for extra in ("stereo", "run-colmap-geometric.sh", "run-colmap-photometric.sh"):
+        p = tmp / extra
+        if p.is_dir():
+            shutil.rmtree(p)
+        elif p.exists():
+            p.unlink()
+    shutil.rmtree(out, ignore_errors=True)
+    os.replace(tmp, out)
+
+
+def _photos_key(photos: list[Path], config: SfmConfig) -> str:
+    from ptovs.artifacts import artifact_key
+
+    h = hashlib.sha256()
+    for p in photos:
+        h.update(p.name.encode())
+        with open(p, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+    return artifact_key(
+        NAME, VERSION, dataclasses.asdict(config), {"photos": h.hexdigest()}
+    )
+
+
+def posed_scene(
+    photo_folder: Path, scene: str, work_dir: Path, config: SfmConfig
+) -> Path:
+    """The materialised scene folder for a photo folder (runs SfM on a cache miss)."""
+    from ptovs.artifacts import provenance
+
+    photos = list_photos(photo_folder)
+    key = _photos_key(photos, config)
+    store = Store(work_dir)
+    out = store.path(scene, NAME, key).with_suffix("")  # <work>/<scene>/sfm/<key12>/
+    with store.lock(scene, NAME, key):
+        art = store.lookup(scene, NAME, key)
+        if art is not None and (out / "sparse").is_dir() and (out / "images").is_dir():
+            art.close()
+            return out
+        with tempfile.TemporaryDirectory(
+            dir=out.parent if out.parent.exists() else None
+        ) as td:
+            td = Path(td)
+            if art is not None:  # the artifact holds the model: only undistort again
+                root = art.root()
+                art.close()
+                model_dir = td / "model"
+                model_dir.mkdir()
+                for name in ("cameras", "images", "points3D", "rigs", "frames"):
+                    if f"model_{name}" in root:
+                        (model_dir / f"{name}.bin").write_bytes(
+                            root[f"model_{name}"].tobytes()
+                        )
+                _stage_photos(photos, td / "input")
+                _materialise(model_dir, td / "input", out, scene, config.test_fraction)
+                return out
+            log.info(
+                "SfM on %d photos in %s (cached under %s)",
+                len(photos),
+                photo_folder,
+                key[:12],
+            )
+            result = run_sfm(photo_folder, td, config)
+            report = result["report"]
+            _materialise(
+                result["model_dir"], result["staged"], out, scene, config.test_fraction
+            )
+            datasets = {"report_json": json_dataset(report)}
+            for f in sorted(Path(result["model_dir"]).glob("*.bin")):
+                datasets[f"model_{f.stem}"] = np.frombuffer(
+                    f.read_bytes(), np.uint8
+                ).copy()
+            attrs = dict(
+                provenance(),
+                version=VERSION,
+                scene=scene,
+                config_json=json_dataset(dataclasses.asdict(config)).tobytes().decode(),
+                inputs_json="{}",
+            )
+            writer = store.writer(scene, NAME, key, attrs)
+            writer.write_root(datasets)
+            writer.finish().close()
+            log.info(
+                "SfM: registered %d of %d photos (%s pairing) in %.1f s -> %s",
+                report["registered"],
+                report["photos"],
+                report["pairing"],
+                sum(report["seconds"].values()),
+                out,
+            )
+    return out
+
+
+def sfm_report(work_dir: Path, scene: str) -> list[dict[str, Any]]:
+    """Reports of the SfM runs cached for a scene (newest first)."""
+    store = Store(work_dir)
+    out = []
+    for art in store.others(scene, NAME, "-" * 64):
+        out.append(read_json_dataset(art.root()["report_json"]))
+        art.close()
+    return out

@@ -1,0 +1,243 @@
+"""Reconstruct: photos -> in-the-wild Gaussian radiance field (PAPER_SPEC.md §2).
+
+Trains 3D Gaussians from the scene's points3D with the WE-GS appearance networks
+(f_α embeds an image and its transient mask, f_β predicts the transient mask, f_γ
+shifts each Gaussian's SH for an embedding), or imports the authors' released
+WE-GS model (`--set import_dir=DIR`). A folder of photos without a COLMAP model is
+first posed with pycolmap SfM (`ptovs.sfm`), cached in the work dir.
+
+Writes one artifact: Gaussians (raw 3DGS parameters), network weights, an
+embedding for every image (train and test), a low-resolution transient mask per
+train image, the training log and metrics. Training checkpoints every
+`checkpoint_every` iterations; a killed run resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from torch.nn import functional as F  # noqa: N812
+
+from ptovs.artifacts import Checkpoint, json_dataset
+from ptovs.field.losses import psnr
+from ptovs.field.render import WildField
+from ptovs.field.train import train, visibility
+from ptovs.raster import VERSION as RASTER_VERSION
+from ptovs.raster import Camera, Gaussians
+from ptovs.stage import scene_input, stage_command
+
+log = logging.getLogger(__name__)
+
+NAME = "reconstruct"
+VERSION = 1 + 100 * RASTER_VERSION  # renders: the rasterizer's version is in the key
+MASK_DIV = 4  # stored transient masks: working size / 4
+
+
+@dataclass(frozen=True)
+class Config:
+    wild: bool = True
+    """In-the-wild model (f_α, f_β, f_γ); false = plain 3DGS with the same budget."""
+    preset: Literal["cpu", "authors"] = "cpu"
+    """Network sizes: "cpu" (64² inputs, narrow) or "authors" (their exact layers)."""
+    mask_concat: Literal["features", "input"] = "features"
+    """Where f_α sees the mask: the paper's "features" or the code's "input"."""
+    delta_sh_scale: float = 4.0
+    """ΔSH = scale·tanh(·); the authors' 1 limits the DC colour shift to ±0.28."""
+    sh_degree: int = 3
+    iterations: int = 3000
+    seed: int = 0
+    ssim_lambda: float = 0.2
+    mask_reg: float = 0.15
+    """β in β·mean(M): without it the transient mask grows to 1."""
+    mask_warmup: int = 300
+    """Iterations trained unmasked before the transient mask enters the loss."""
+    lr_alpha: float = 1e-3
+    lr_beta: float = 1e-3
+    lr_gamma: float = 1e-3
+    densify_from: int = 200
+    densify_until: int = 1800
+    densify_every: int = 100
+    densify_grad: float = 2e-4
+    percent_dense: float = 0.01
+    opacity_reset_every: int = 1000
+    prune_opacity: float = 0.005
+    max_gaussians: int = 60000
+    sh_increase_every: int = 400
+    visible_only: bool = True
+    """Evaluate ΔSH only for Gaussians inside the view's frustum (+50% margin)."""
+    prune_unseen: float = 0.01
+    """Remove Gaussians whose total blend weight over all train views is below this."""
+    checkpoint_every: int = 250
+    backend: str = "auto"
+    import_dir: str = ""
+    """Folder with the authors' released WE-GS model; empty = train."""
+    import_iteration: int = -1
+    """Which chkpnt<iter> to import; -1 = the highest present."""
+
+
+@dataclass(frozen=True)
+class Inputs:
+    scene: Any = scene_input()
+
+
+def _views_and_images(scene):
+    train_views = scene.train_views()
+    if not train_views:
+        raise ValueError(f"scene {scene.name} has no train views")
+    images = [scene.load_image(v) for v in train_views]
+    cams = [Camera.from_view(v) for v in train_views]
+    return train_views, images, cams
+
+
+def run(
+    inputs: Inputs, config: Config, skip=frozenset(), ckpt: Checkpoint | None = None
+) -> Iterator[tuple[str | None, dict]]:
+    """Train (or import) the field, then yield per-view embeddings and masks."""
+    scene = inputs.scene
+    train_views, images, cams = _views_and_images(scene)
+    if config.import_dir:
+        from ptovs.field.authors import import_released
+
+        field = import_released(config.import_dir, config.import_iteration)
+        nets, metrics, history = field.nets, {"imported_from": config.import_dir}, None
+        params = field.raw
+    else:
+        state = train(
+            config,
+            images,
+            cams,
+            (scene.points_xyz, scene.points_rgb),
+            load=(ckpt.load if ckpt else lambda: None),
+            save=(ckpt.save if ckpt else lambda s: None),
+            desc=f"{NAME} {scene.name}",
+        )
+        if ckpt is not None:  # the final state: a crash while writing loses nothing
+            ckpt.save(state.to_dict())
+        model, nets = state.model, state.nets
+        n_before = len(model)
+        weights = visibility(model, cams, config.backend)
+        unseen = weights < config.prune_unseen
+        if unseen.all():
+            raise ValueError(
+                f"no Gaussian is seen by any train view of {scene.name}; the poses "
+                "or points3D are inconsistent"
+            )
+        model.keep(~unseen)
+        params = {k: v.detach() for k, v in model.params.items()}
+        params["sh"] = torch.cat((params.pop("sh_dc"), params.pop("sh_rest")), 1)
+        history = state.history
+        metrics = {
+            "gaussians_trained": n_before,
+            "gaussians_unseen_removed": int(unseen.sum()),
+            "gaussians": len(model),
+            "train_seconds": round(state.seconds, 2),
+            "seconds_per_iteration": round(
+                state.seconds / max(config.iterations, 1), 4
+            ),
+            "iterations": config.iterations,
+        }
+        log.info(
+            "%s: %d Gaussians (%d seen by no train view removed), %.1f s",
+            scene.name,
+            len(model),
+            int(unseen.sum()),
+            state.seconds,
+        )
+
+    for name, p in params.items():
+        if not torch.isfinite(p).all():
+            raise FloatingPointError(f"parameter {name} is not finite after training")
+    sh_degree = config.sh_degree if not config.import_dir else field.sh_degree
+    field_out = WildField(
+        Gaussians(
+            params["means"],
+            params["quats"],
+            torch.exp(params["log_scales"]),
+            torch.sigmoid(params["opacity_logits"]),
+        ),
+        params["sh"],
+        sh_degree,
+        nets,
+        background=(
+            torch.sigmoid(state.background.detach())
+            if nets is None and not config.import_dir
+            else None
+        ),
+    )
+    if nets is not None:
+        nets.eval()
+
+    # per-view outputs: embeddings of every image, transient masks of train images
+    train_names = {v.name for v in train_views}
+    own_psnr: dict[str, list[float]] = {"train": [], "test": []}
+    for view in scene.views:
+        image = (
+            images[[v.name for v in train_views].index(view.name)]
+            if view.name in train_names
+            else scene.load_image(view)
+        )
+        cam = Camera.from_view(view)
+        datasets: dict[str, Any] = {}
+        if nets is not None:
+            emb, mask_lo = nets.embed_image(image)
+            datasets["embedding"] = emb.numpy().astype(np.float32)
+            rgb = field_out.render(cam, emb[None], backend=config.backend)[0]
+            if view.name in train_names:
+                size = (max(1, view.height // MASK_DIV), max(1, view.width // MASK_DIV))
+                m = F.interpolate(mask_lo, size=size, mode="bilinear")[0, 0]
+                datasets["transient"] = m.numpy().astype(np.float16)
+        else:
+            rgb = field_out.render(cam, backend=config.backend)[0]
+        own_psnr["train" if view.name in train_names else "test"].append(
+            psnr(rgb, image)
+        )
+        if view.name not in skip:
+            yield view.name, datasets
+
+    for split, values in own_psnr.items():
+        if values:
+            metrics[f"psnr_{split}"] = round(float(np.mean(values)), 3)
+    log.info(
+        "%s: PSNR train %.2f dB, test %s dB",
+        scene.name,
+        metrics.get("psnr_train", float("nan")),
+        metrics.get("psnr_test", "-"),
+    )
+    root: dict[str, Any] = {
+        "means": params["means"].numpy(),
+        "quats": params["quats"].numpy(),
+        "log_scales": params["log_scales"].numpy(),
+        "opacity_logits": params["opacity_logits"].numpy(),
+        "sh": params["sh"].numpy(),
+        "sh_degree": np.int64(sh_degree),
+        "metrics_json": json_dataset(metrics),
+    }
+    if field_out.background is not None:
+        root["background"] = field_out.background.numpy()
+    if nets is not None:
+        for k, v in nets.state_dict().items():
+            root[f"net.{k}"] = v.numpy()
+    if history:
+        for k, v in history.items():
+            root[f"log_{k}"] = np.asarray(v, np.float64)
+    yield None, root
+
+
+def _count(inputs: Inputs, config: Config) -> int:
+    return len(inputs.scene.views)
+
+
+command = stage_command(NAME, VERSION, Config, Inputs, run, count=_count)
+
+
+def load_field(art) -> WildField:
+    """The field of a reconstruct artifact (for later stages and tools)."""
+    return WildField.from_artifact(art)
+
+
+__all__ = ["Config", "Inputs", "command", "load_field", "run"]

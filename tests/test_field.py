@@ -1,0 +1,343 @@
+"""Networks, trainable Gaussians, losses, PLY, rendering helper (no stage run)."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from ptovs.field.losses import auroc, psnr, ssim
+from ptovs.field.model import GaussianModel, LearningRates, knn_mean_dist2
+from ptovs.field.ply import read_ply, write_ply
+from ptovs.field.render import WildField, gaussian_colors, in_frustum
+from ptovs.nets import PRESETS, WildNets, positional_encoding
+from ptovs.raster import Camera, Gaussians, render
+
+
+def _camera(w=32, h=24, f=30.0) -> Camera:
+    return Camera(
+        torch.eye(4), torch.tensor([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]]), w, h
+    )
+
+
+def _points(n=200, seed=0):
+    rng = np.random.default_rng(seed)
+    xyz = rng.uniform(-1, 1, (n, 3)) + np.array([0, 0, 4.0])
+    rgb = rng.integers(0, 256, (n, 3)).astype(np.uint8)
+    return xyz, rgb
+
+
+# ----------------------------------------------------------------------- nets
+
+
+@pytest.mark.parametrize("concat", ["features", "input"])
+@torch.no_grad()
+def test_cpu_nets_shapes_and_ranges(concat):
+    nets = WildNets("cpu", 16, mask_concat=concat, delta_scale=4.0)
+    img = np.random.default_rng(0).random((50, 70, 3)).astype(np.float32)
+    a, b = nets.prepare(img)
+    assert a.shape == (3, 64, 64) and b.shape == (3, 64, 64)
+    m = nets.transient(b[None])
+    assert m.shape == (1, 1, 64, 64) and float(m.min()) >= 0 and float(m.max()) <= 1
+    emb = nets.embed(a[None], m)
+    assert emb.shape == (1, 32)
+    sh = torch.randn(10, 16, 3)
+    delta = nets.delta_sh(sh, torch.randn(10, 3), emb[0])
+    assert delta.shape == (10, 16, 3)
+    assert float(delta.abs().max()) == 0.0  # zero-initialised output layer
+    torch.nn.init.normal_(nets.f_gamma.out.weight, std=10.0)
+    delta = nets.delta_sh(sh, torch.randn(10, 3), emb[0])
+    assert float(delta.abs().max()) <= 4.0 + 1e-6  # scale * tanh
+    dirs = torch.nn.functional.normalize(torch.randn(5, 7, 3), dim=-1)
+    sky = nets.background(dirs, emb[0])
+    assert sky.shape == (5, 7, 3) and float(sky.min()) > 0 and float(sky.max()) < 1
+
+
+def test_authors_preset_layer_sizes():
+    """The authors' layers (PAPER_SPEC.md §2): f_α 4→128…512→32, f_γ 167→FC256, f_β 16…512."""
+    nets = WildNets("authors", 36, mask_concat="input", background=False)
+    convs = [m for m in nets.f_alpha.features if isinstance(m, torch.nn.Conv2d)]
+    assert [tuple(c.weight.shape) for c in convs] == [
+        (128, 4, 7, 7),
+        (256, 128, 4, 4),
+        (512, 256, 4, 4),
+        (512, 512, 4, 4),
+        (512, 512, 4, 4),
+    ]
+    assert tuple(nets.f_alpha.head.weight.shape) == (32, 512, 1, 1)
+    assert nets.f_gamma.block1[0].in_features == 108 + 27 + 32 == 167
+    assert nets.f_gamma.block1[0].out_features == 256
+    assert (
+        nets.f_gamma.head.out_features == 128 and nets.f_gamma.out.out_features == 108
+    )
+    assert (
+        nets.f_beta.stem.out_channels == 16 and nets.f_beta.mid.pw2.out_channels == 512
+    )
+    assert nets.sky is None
+    x = torch.rand(1, 3, 256, 256)
+    assert nets.transient(x).shape == (1, 1, 256, 256)
+
+
+def test_positional_encoding_layout():
+    x = torch.tensor([[0.5, -1.0, 2.0]])
+    pe = positional_encoding(x, 4)
+    assert pe.shape == (1, 27)
+    assert torch.allclose(pe[0, :3], x[0])
+    assert torch.allclose(pe[0, 3:6], torch.sin(x[0]))
+    assert torch.allclose(pe[0, 24:27], torch.cos(8 * x[0]))
+
+
+def test_presets_cpu_is_cheaper():
+    def n_params(p):
+        return sum(t.numel() for t in WildNets(p, 16).parameters())
+
+    assert n_params("cpu") * 20 < n_params("authors")
+    assert PRESETS["cpu"].alpha_res <= 128
+
+
+# ----------------------------------------------------------------- Gaussians
+
+
+def test_init_from_points_and_knn():
+    xyz = np.array([[0, 0, 0], [1, 0, 0], [0, 2, 0], [10, 10, 10]], float)
+    d2 = knn_mean_dist2(torch.tensor(xyz, dtype=torch.float32), k=1)
+    assert torch.allclose(d2[:3], torch.tensor([1.0, 1.0, 4.0]))
+    m = GaussianModel.from_points(*_points(), 3, LearningRates(), 2.0)
+    assert len(m) == 200
+    assert m.params["sh_rest"].shape == (200, 15, 3)
+    g = m.gaussians()
+    assert float(g.opacities.mean()) == pytest.approx(0.1, rel=1e-4)
+    # one point alone: no neighbour, no NaN
+    solo = GaussianModel.from_points(
+        np.zeros((1, 3)), np.zeros((1, 3), np.uint8), 0, LearningRates(), 1.0
+    )
+    assert torch.isfinite(solo.params["log_scales"]).all()
+
+
+def _step(m: GaussianModel):
+    g = m.gaussians()
+    loss = (
+        g.means.square().sum()
+        + g.scales.sum()
+        + g.opacities.sum()
+        + m.sh.square().sum()
+        + g.quats.sum()
+    )
+    loss.backward()
+    m.opt.step()
+    m.opt.zero_grad()
+
+
+def test_densify_prune_keep_optimizer_state_aligned():
+    m = GaussianModel.from_points(*_points(50), 1, LearningRates(), 1.0)
+    _step(m)
+    before = {k: v.detach().clone() for k, v in m.params.items()}
+    state0 = m.opt.state[m.params["means"]]["exp_avg"].clone()
+    grads = torch.zeros(50)
+    grads[:10] = 1.0
+    scales = m.params["log_scales"].detach()
+    scales[:5] = math.log(10.0)  # big: split
+    scales[5:] = math.log(0.001)  # small: clone
+    gen = torch.Generator().manual_seed(0)
+    cloned, split = m.densify(grads, 0.5, 0.01, gen, max_gaussians=1000)
+    assert (cloned, split) == (5, 5)
+    assert len(m) == 50 + 5 + 2 * 5 - 5
+    for p in m.params.values():
+        st = m.opt.state[p]
+        assert st["exp_avg"].shape == p.shape and st["exp_avg_sq"].shape == p.shape
+    # the untouched Gaussians keep their values and moments, in order
+    assert torch.equal(m.params["means"][:45].detach(), before["means"][5:50])
+    assert torch.equal(m.opt.state[m.params["means"]]["exp_avg"][:45], state0[5:50])
+    _step(m)  # Adam still works on the edited tensors
+    keep = torch.ones(len(m), dtype=torch.bool)
+    keep[::2] = False
+    m.keep(keep)
+    assert len(m) == int(keep.sum())
+    _step(m)
+
+
+def test_densify_respects_budget():
+    m = GaussianModel.from_points(*_points(50), 0, LearningRates(), 1.0)
+    grads = torch.linspace(0, 1, 50)
+    m.densify(grads, 0.0, 0.01, torch.Generator().manual_seed(0), max_gaussians=60)
+    assert len(m) <= 60 + 10  # splits replace parents: at most budget + split count
+
+
+def test_reset_opacity_caps():
+    m = GaussianModel.from_points(*_points(20), 0, LearningRates(), 1.0)
+    with torch.no_grad():
+        m.params["opacity_logits"].fill_(5.0)
+    _step(m)
+    m.reset_opacity(0.01)
+    assert float(torch.sigmoid(m.params["opacity_logits"]).max()) <= 0.01 + 1e-6
+    st = m.opt.state[m.params["opacity_logits"]]
+    assert float(st["exp_avg"].abs().max()) == 0.0
+
+
+# --------------------------------------------------------------------- losses
+
+
+def test_ssim_matches_opencv_quality_reference():
+    rng = np.random.default_rng(1)
+    a = cv2.GaussianBlur(rng.random((40, 50, 3)).astype(np.float32), (5, 5), 1.0)
+    b = np.clip(a + rng.normal(0, 0.05, a.shape).astype(np.float32), 0, 1)
+    ours = float(ssim(torch.from_numpy(a), torch.from_numpy(b)))
+    # OpenCV's quality module: Gaussian 11x11, sigma 1.5 over the same valid region
+    ref = cv2.quality.QualitySSIM_compute(
+        (a * 255).astype(np.float64), (b * 255).astype(np.float64)
+    )[0]
+    ref_mean = float(np.mean(ref[:3]))
+    assert ours == pytest.approx(ref_mean, abs=0.03)
+    assert float(ssim(torch.from_numpy(a), torch.from_numpy(a))) == pytest.approx(
+        1.0, abs=1e-5
+    )
+
+
+def test_ssim_small_and_constant_images_finite():
+    for h, w in [(1, 1), (2, 3), (5, 5), (12, 9)]:
+        x = torch.zeros(h, w, 3, requires_grad=True)
+        val = ssim(x, torch.zeros(h, w, 3))
+        val.backward()
+        assert torch.isfinite(val) and torch.isfinite(x.grad).all()
+
+
+def test_psnr_and_auroc():
+    a = np.zeros((4, 4, 3))
+    assert psnr(a, a) == 99.0
+    assert psnr(a, a + 0.1) == pytest.approx(20.0, abs=1e-9)
+    mask = np.zeros((4, 4), bool)
+    assert math.isnan(psnr(a, a, mask))
+    assert auroc(np.array([0.1, 0.2, 0.8, 0.9]), np.array([0, 0, 1, 1])) == 1.0
+    assert auroc(np.array([0.5, 0.5]), np.array([0, 1])) == 0.5
+    rng = np.random.default_rng(0)
+    s, y = rng.random(300), rng.random(300) > 0.5
+    brute = np.mean([(si > sj) + 0.5 * (si == sj) for si in s[y] for sj in s[~y]])
+    assert auroc(s, y) == pytest.approx(brute)
+    assert math.isnan(auroc(s, np.ones(300, bool)))
+
+
+# ------------------------------------------------------------------------ PLY
+
+
+def test_ply_round_trip(tmp_path):
+    rng = np.random.default_rng(0)
+    n = 37
+    for k in (1, 16, 36):
+        data = dict(
+            means=rng.normal(size=(n, 3)).astype(np.float32),
+            sh=rng.normal(size=(n, k, 3)).astype(np.float32),
+            opacity_logits=rng.normal(size=n).astype(np.float32),
+            log_scales=rng.normal(size=(n, 3)).astype(np.float32),
+            quats=rng.normal(size=(n, 4)).astype(np.float32),
+        )
+        path = write_ply(tmp_path / f"g{k}.ply", **data)
+        back = read_ply(path)
+        for name, arr in data.items():
+            np.testing.assert_array_equal(back[name], arr)
+    # the Inria layout: f_rest is channel-major
+    from plyfile import PlyData
+
+    v = PlyData.read(str(tmp_path / "g16.ply"))["vertex"]
+    names = [p.name for p in v.properties]
+    assert names[:9] == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+    assert names[-8:] == [
+        "opacity",
+        "scale_0",
+        "scale_1",
+        "scale_2",
+        "rot_0",
+        "rot_1",
+        "rot_2",
+        "rot_3",
+    ]
+    assert len([p for p in names if p.startswith("f_rest_")]) == 45
+    sh16 = rng.normal(size=(n, 16, 3)).astype(np.float32)
+    write_ply(
+        tmp_path / "c.ply",
+        data["means"],
+        sh16,
+        data["opacity_logits"],
+        data["log_scales"],
+        data["quats"],
+    )
+    v = PlyData.read(str(tmp_path / "c.ply"))["vertex"]
+    np.testing.assert_array_equal(np.asarray(v["f_rest_1"]), sh16[:, 2, 0])
+    np.testing.assert_array_equal(np.asarray(v["f_rest_15"]), sh16[:, 1, 1])
+
+
+def test_ply_refuses_nan_and_bad_files(tmp_path):
+    from ptovs.errors import InputError
+
+    z = np.zeros((2, 3), np.float32)
+    with pytest.raises(ValueError, match="non-finite"):
+        write_ply(
+            tmp_path / "x.ply",
+            z,
+            np.full((2, 1, 3), np.nan, np.float32),
+            np.zeros(2, np.float32),
+            z,
+            np.zeros((2, 4), np.float32),
+        )
+    (tmp_path / "bad.ply").write_text("not a ply")
+    with pytest.raises(InputError, match="bad.ply"):
+        read_ply(tmp_path / "bad.ply")
+
+
+# ------------------------------------------------------------- render helper
+
+
+def _field(wild=True, n=80):
+    xyz, rgb = _points(n)
+    m = GaussianModel.from_points(xyz, rgb, 3, LearningRates(), 2.0)
+    nets = WildNets("cpu", 16, delta_scale=4.0) if wild else None
+    if nets is not None:
+        torch.nn.init.normal_(nets.f_gamma.out.weight, std=0.1)
+    p = {k: v.detach() for k, v in m.params.items()}
+    g = Gaussians(
+        p["means"],
+        p["quats"],
+        torch.exp(p["log_scales"]),
+        torch.sigmoid(p["opacity_logits"]),
+    )
+    return WildField(
+        g,
+        m.sh.detach(),
+        3,
+        nets,
+        {"a.jpg": torch.randn(32)},
+        background=None if wild else torch.tensor([0.2, 0.3, 0.4]),
+    )
+
+
+def test_render_batched_equals_one_by_one_and_is_clamped():
+    field = _field()
+    cam = _camera()
+    embs = torch.randn(3, 32) * 3
+    batch = field.render(cam, embs)
+    assert batch.shape == (3, 24, 32, 3)
+    for e in range(3):
+        single = field.render(cam, embs[e : e + 1])[0]
+        torch.testing.assert_close(batch[e], single, rtol=1e-5, atol=1e-5)
+    assert float(batch.min()) >= 0 and float(batch.max()) <= 1
+    assert field.embeddings_of(["a"]).shape == (1, 32)
+    with pytest.raises(KeyError):
+        field.embeddings_of(["nope"])
+    plain = _field(wild=False)
+    out = plain.render(cam)
+    assert out.shape == (1, 24, 32, 3)
+
+
+def test_visible_only_delta_matches_full_for_drawn_gaussians():
+    field = _field()
+    cam = _camera()
+    emb = torch.randn(32)
+    g = field.gaussians
+    a = gaussian_colors(g.means, field.sh, 3, cam, field.nets, emb, visible_only=True)
+    b = gaussian_colors(g.means, field.sh, 3, cam, field.nets, emb, visible_only=False)
+    drawn = (render(g, cam, a).radii > 0).any(1)
+    vis = in_frustum(g.means, cam)
+    assert bool(vis[drawn].all())
+    torch.testing.assert_close(a[drawn], b[drawn])
