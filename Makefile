@@ -1,5 +1,5 @@
 # ptovs: set up, demo, test, benchmark; and run the pipeline over DATA/* scenes.
-#   make demo          fresh machine → venv, tiny synthetic scene, `ptovs status`
+#   make demo          fresh machine → venv, tiny synthetic scene, every stage, a PLY
 #   make test          the test suite (what CI runs)
 #   make -j3 scenes    every scene under DATA in parallel, stages in order
 PYTHON ?= python3
@@ -11,7 +11,7 @@ CONFIG ?= configs/default.toml
 # scene folders under DATA (the PT-OVS `label` folder is not a scene)
 SCENES ?= $(filter-out label,$(notdir $(patsubst %/,%,$(wildcard $(DATA)/*/))))
 # implemented stages, in pipeline order (each issue adds its own)
-STAGES :=
+STAGES := reconstruct
 PTOVS  := $(BIN)/ptovs --work-dir $(WORK) --config $(CONFIG)
 
 .PHONY: setup demo test lint format bench scenes status clean-work $(SCENES)
@@ -26,6 +26,8 @@ $(VENV)/.installed: pyproject.toml
 
 demo: setup
 	$(BIN)/ptovs synth-scene $(DATA) --preset tiny --seed 0
+	@for s in $(STAGES); do $(PTOVS) $$s --data $(DATA)/tiny_s0 || exit 1; done
+	$(PTOVS) export-ply --data $(DATA)/tiny_s0 --out $(WORK)/tiny_s0/tiny_s0.ply
 	$(PTOVS) status --data $(DATA)/tiny_s0
 
 test: setup
@@ -41,6 +43,7 @@ bench: setup
 	$(BIN)/python bench/raster.py
 	$(BIN)/python bench/synth_timing.py
 	$(BIN)/python bench/encoder_calibration.py --seeds 0 1 2 --out $(WORK)/synthetic
+	$(BIN)/python bench/reconstruct.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
 
 scenes: $(SCENES)
 $(SCENES): setup

@@ -806,6 +806,27 @@ def _resolve_labels_dir(root: Path, labels_dir: str | Path | None) -> Path | Non
 # ---------------------------------------------------------------------- images
 
 
+_warned_truncated: set[str] = set()
+
+
+def jpeg_truncated(path: Path) -> bool:
+    """True for a JPEG whose data does not end with the end-of-image marker.
+
+    libjpeg decodes such a file with a warning on stderr that names no file and
+    fills the missing rows with grey; ptovs checks the marker itself to say which.
+    """
+    path = Path(path)
+    if path.suffix.lower() not in (".jpg", ".jpeg"):
+        return False
+    with open(path, "rb") as fh:
+        head = fh.read(2)
+        fh.seek(0, 2)
+        size = fh.tell()
+        fh.seek(max(0, size - 64))
+        tail = fh.read().rstrip(b"\x00")
+    return head == b"\xff\xd8" and not tail.endswith(b"\xff\xd9")
+
+
 def load_image(view: View) -> np.ndarray:
     """Decode a view's image at working size.
 
@@ -824,6 +845,13 @@ def load_image(view: View) -> np.ndarray:
         raise InputError(
             f"could not decode image {path} (corrupt or unsupported format); "
             "replace it with a readable JPEG or PNG"
+        )
+    if str(path) not in _warned_truncated and jpeg_truncated(path):
+        _warned_truncated.add(str(path))
+        logger.warning(
+            "image %s is a truncated JPEG (no end-of-image marker): the decoder fills "
+            "the missing rows with grey; used as is (replace the file to fix it)",
+            path,
         )
     if img.dtype == np.uint8:
         scale = 1.0 / 255.0

@@ -17,14 +17,16 @@ Choices (measured on the bench preset, docs/benchmarks.md):
   marker: libjpeg decodes them with a warning that names no file) are skipped and
   listed; grey, 16-bit, alpha photos are converted to 8-bit RGB copies.
 - SIFT on CPU with `max_image_size` 1024 and `max_num_features` 4096.
-- Pairing: exhaustive up to `exhaustive_max` photos (60). Beyond that, `retrieval`
-  (default): a bag of visual words learnt on the collection's own SIFT descriptors
-  (k-means, tf-idf, cosine) picks each photo's `retrieval_k` nearest photos, because
-  no vocabulary tree can be downloaded here; `vocabtree` uses a tree file the user
-  gives (`vocab_tree`); `sequential` suits video frames.
-- Two-view geometry and the mapper need `min_num_matches` (30) inliers: repeated
-  façade textures give many wrong pairs at COLMAP's default 15. The structure-less
-  registration fallback is off (it took most of 293 s on one bench image).
+- Pairing: exhaustive while its estimated time (pairs x 0.2 s x (features/4096)²,
+  measured on real photos) fits `exhaustive_budget_s` (300 s: ~55 real photos).
+  Beyond that, `retrieval`: a bag of visual words learnt on the collection's own SIFT
+  descriptors (k-means, tf-idf, cosine) picks each photo's `retrieval_k` nearest
+  photos, because no vocabulary tree can be downloaded here; `vocabtree` uses a tree
+  file the user gives (`vocab_tree`); `sequential` suits video frames.
+- Two-view geometry and the mapper need `min_num_matches` (15, COLMAP's default)
+  inliers; on the bench photos 30 registered 30/88 against 55/88 (see
+  docs/benchmarks.md for the pose errors). The structure-less registration fallback
+  is off (it took most of 293 s on one bench image).
 - One camera per photo (`camera_mode = "per_image"`): Internet photos differ in
   focal length and size. SIMPLE_RADIAL, then `pycolmap.undistort_images`.
 """
@@ -47,6 +49,7 @@ import numpy as np
 
 from ptovs.artifacts import Store, json_dataset, read_json_dataset
 from ptovs.errors import InputError, MissingInputError
+from ptovs.scene import jpeg_truncated
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +57,7 @@ NAME = "sfm"
 VERSION = 1
 IMAGE_EXTS = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp", ".jp2"}
 MIN_REGISTERED = 3
+PAIR_SECONDS = 0.2  # exhaustive matching of two 4096-feature photos on 2 cores
 
 
 @dataclass(frozen=True)
@@ -62,14 +66,20 @@ class SfmConfig:
 
     max_image_size: int = 1024
     max_num_features: int = 4096
-    min_num_matches: int = 30
+    peak_threshold: float = 0.0067
+    """SIFT detection threshold (COLMAP's default); lower finds more on flat images."""
+    min_num_matches: int = 15
     """Minimum verified inliers for a pair, and matches for the mapper."""
     pairing: Literal["auto", "exhaustive", "retrieval", "vocabtree", "sequential"] = (
         "auto"
     )
-    """"auto": exhaustive up to exhaustive_max photos, else retrieval."""
-    exhaustive_max: int = 60
-    retrieval_k: int = 20
+    """"auto": exhaustive while its estimated cost fits exhaustive_budget_s, else
+    retrieval."""
+    exhaustive_budget_s: float = 300.0
+    """Estimated exhaustive matching time allowed under "auto": pairs x 0.2 s x
+    (mean features / 4096)² (0.16-0.23 s per pair of real 4096-feature photos
+    here), i.e. about 55 real photos, or hundreds of small synthetic ones."""
+    retrieval_k: int = 30
     """Nearest photos matched per photo by the retrieval pairing."""
     vocab_tree: str = ""
     """A COLMAP vocabulary-tree file for pairing = "vocabtree" (none can be downloaded)."""
@@ -103,19 +113,6 @@ def list_photos(folder: Path) -> list[Path]:
         for p in Path(folder).iterdir()
         if p.is_file() and p.suffix.lower() in IMAGE_EXTS
     )
-
-
-def jpeg_truncated(path: Path) -> bool:
-    """True for a JPEG whose data does not end with the end-of-image marker."""
-    if path.suffix.lower() not in (".jpg", ".jpeg"):
-        return False
-    with open(path, "rb") as fh:
-        head = fh.read(2)
-        fh.seek(0, os.SEEK_END)
-        size = fh.tell()
-        fh.seek(max(0, size - 64))
-        tail = fh.read().rstrip(b"\x00")
-    return head == b"\xff\xd8" and not tail.endswith(b"\xff\xd9")
 
 
 def _stage_photos(photos: list[Path], out: Path) -> tuple[list[str], dict[str, str]]:
@@ -236,6 +233,7 @@ def run_sfm(photo_folder: Path, workdir: Path, config: SfmConfig) -> dict[str, A
     ext.num_threads = min(os.cpu_count() or 1, 8)
     ext.max_image_size = config.max_image_size
     ext.sift.max_num_features = config.max_num_features
+    ext.sift.peak_threshold = config.peak_threshold
     mode = {
         "per_image": pycolmap.CameraMode.PER_IMAGE,
         "single": pycolmap.CameraMode.SINGLE,
@@ -256,8 +254,22 @@ def run_sfm(photo_folder: Path, workdir: Path, config: SfmConfig) -> dict[str, A
     match = pycolmap.FeatureMatchingOptions()
     match.num_threads = ext.num_threads
     pairing = config.pairing
+    n_pairs = len(names) * (len(names) - 1) // 2
+    db_handle = pycolmap.Database.open(str(db))
+    try:
+        mean_kp = db_handle.num_keypoints() / max(1, db_handle.num_images())
+    finally:
+        db_handle.close()
+    est = n_pairs * PAIR_SECONDS * (mean_kp / 4096.0) ** 2
     if pairing == "auto":
-        pairing = "exhaustive" if len(names) <= config.exhaustive_max else "retrieval"
+        pairing = "exhaustive" if est <= config.exhaustive_budget_s else "retrieval"
+    log.info(
+        "%d photos, %.0f features each: exhaustive matching ~%.0f s -> %s",
+        len(names),
+        mean_kp,
+        est,
+        pairing,
+    )
     t1 = time.perf_counter()
     if pairing == "exhaustive":
         pycolmap.match_exhaustive(
@@ -316,6 +328,7 @@ def run_sfm(photo_folder: Path, workdir: Path, config: SfmConfig) -> dict[str, A
     recs = pycolmap.incremental_mapping(db, staged, sparse, options=opts)
     t_map = time.perf_counter() - t2
     best = max(recs.values(), key=lambda r: r.num_reg_images(), default=None)
+    rejected = _drop_bad_cameras(best) if best is not None else []
     registered = (
         sorted(best.images[i].name for i in best.reg_image_ids()) if best else []
     )
@@ -327,6 +340,7 @@ def run_sfm(photo_folder: Path, workdir: Path, config: SfmConfig) -> dict[str, A
         "unregistered": unregistered,
         "skipped": skipped,
         "pairing": pairing,
+        "rejected_cameras": rejected,
         "models": len(recs),
         "seconds": {
             "extract": round(t_extract, 2),
@@ -339,8 +353,9 @@ def run_sfm(photo_folder: Path, workdir: Path, config: SfmConfig) -> dict[str, A
             f"{photo_folder}: SfM registered {len(registered)} of {len(photos)} photos "
             f"(at least {MIN_REGISTERED} are needed). Try: more photos that overlap "
             "(each part of the landmark seen from several nearby viewpoints), "
-            "--set scene... or `ptovs --set sfm.min_num_matches=15` (fewer inliers "
-            "per pair), `--set sfm.pairing=exhaustive`, or pose the photos with "
+            "`ptovs --set sfm.min_num_matches=10` (fewer inliers per pair), "
+            "`ptovs --set sfm.pairing=exhaustive`, `ptovs --set "
+            "sfm.max_image_size=2048` (more features), or pose the photos with "
             "COLMAP yourself and pass the scene folder"
         )
     if unregistered:
@@ -354,6 +369,41 @@ def run_sfm(photo_folder: Path, workdir: Path, config: SfmConfig) -> dict[str, A
     model_dir.mkdir()
     best.write(str(model_dir))
     return {"report": report, "model_dir": model_dir, "staged": staged}
+
+
+def _drop_bad_cameras(rec) -> list[str]:
+    """Deregister images whose refined camera is implausible; returns their names.
+
+    A per-photo focal length is weakly constrained; now and then bundle adjustment
+    ends with a negative or absurd focal or distortion (seen on a 14-photo walk:
+    f = -81,559 px), which would make undistortion produce garbage.
+    """
+    bad = []
+    for image_id in list(rec.reg_image_ids()):
+        image = rec.images[image_id]
+        cam = rec.cameras[image.camera_id]
+        params = np.asarray(cam.params, np.float64)
+        f = params[list(cam.focal_length_idxs())]
+        size = max(cam.width, cam.height)
+        extra = np.delete(
+            params, list(cam.focal_length_idxs()) + list(cam.principal_point_idxs())
+        )
+        ok = (
+            np.isfinite(params).all()
+            and (f > 0.1 * size).all()
+            and (f < 10.0 * size).all()
+            and (np.abs(extra) < 1.0).all()
+        )
+        if not ok:
+            bad.append(image.name)
+            rec.deregister_frame(image.frame_id)
+    if bad:
+        log.warning(
+            "SfM: %d photo(s) ended with an implausible camera and are left out: %s",
+            len(bad),
+            ", ".join(bad),
+        )
+    return bad
 
 
 def _split_names(names: list[str], fraction: float) -> set[str]:

@@ -187,7 +187,9 @@ class WildField:
         degree = int(root["sh_degree"])
         nets = None
         state = {
-            k[4:]: torch.from_numpy(v) for k, v in root.items() if k.startswith("net.")
+            k[4:]: torch.as_tensor(np.asarray(v))
+            for k, v in root.items()
+            if k.startswith("net.")
         }
         if state:
             nets = WildNets(

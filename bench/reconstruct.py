@@ -1,0 +1,314 @@
+"""Benchmark the `reconstruct` stage on the bench preset (issue 8 targets).
+
+python bench/reconstruct.py                         # everything, seeds 0 1 2
+python bench/reconstruct.py --parts default plain --seeds 0
+python bench/reconstruct.py --parts budgets sfm presets --seeds 0
+
+Parts:
+  default  the default config through the CLI: wall time, peak RSS, Gaussians;
+           test-view PSNR with the image's own embedding (true transient pixels
+           excluded); appearance transfer (view i with image j's embedding against
+           the world re-rendered with j's appearance and no occluders); transient
+           mask AUROC against the true masks of the train images
+  plain    the same with --set wild=false (plain 3DGS, same code and budget)
+  budgets  three iteration budgets (time, PSNR, transfer PSNR)
+  sfm      the bench photos with the model withheld: registered, time, rotation and
+           centre error after a Sim3 alignment; then PSNR trained on the SfM poses
+  presets  s/iteration, Gaussians and peak RSS of the `cpu` and `authors` presets,
+           and PSNR of both at equal (short) budgets
+
+Results go to <work>/bench_reconstruct.json and are printed as markdown rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _ptovs(work: Path, *args: str) -> tuple[float, float, str]:
+    """Run `ptovs` in a fresh process; (wall s, peak RSS MB of that process, stdout)."""
+    cmd = [sys.executable, "-m", "ptovs", "-q", "--work-dir", str(work), *args]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    out, err = proc.stdout.read(), proc.stderr.read()
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{err[-3000:]}")
+    return wall, usage.ru_maxrss / 1024.0, out
+
+
+def _scene(data: Path, seed: int) -> Path:
+    scene = data / f"bench_s{seed}"
+    if not (scene / "dense").is_dir():
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "ptovs",
+                "-q",
+                "synth-scene",
+                str(data),
+                "--preset",
+                "bench",
+                "--seed",
+                str(seed),
+            ],
+            check=True,
+        )
+    return scene
+
+
+def evaluate(art_path: Path, scene_dir: Path, n_transfer: int = 8) -> dict:
+    """Test PSNR (own embedding, transients excluded), transfer PSNR, mask AUROC."""
+    import cv2
+    import torch
+
+    from ptovs.artifacts import Artifact
+    from ptovs.field.losses import auroc, psnr
+    from ptovs.field.render import WildField
+    from ptovs.raster import Camera
+    from ptovs.scene import load_scene
+    from ptovs.synthetic.generate import load_truth, rerender
+    from ptovs.synthetic.world import Appearance
+
+    scene = load_scene(scene_dir)
+    with Artifact(art_path) as art:
+        field = WildField.from_artifact(art)
+        masks = {n: art[n].get("transient") for n in art.names()}
+    truth_dir = scene_dir / "synthetic" / "truth"
+    world, cams = load_truth(scene_dir)
+    records = {r["name"]: r for r in cams["images"]}
+    out: dict = {"gaussians": len(field)}
+    test_psnr = []
+    for v in scene.test_views():
+        cam = Camera.from_view(v)
+        img = scene.load_image(v)
+        emb = field.embeddings_of([v.name]) if field.wild else None
+        rgb = field.render(cam, emb)[0].numpy()
+        transient = np.load(truth_dir / f"{v.stem}.npz")["transient"] > 0.5
+        test_psnr.append(psnr(rgb, img, ~transient))
+    out["test_psnr"] = float(np.nanmean(test_psnr))
+    # appearance transfer: test view i under train image j's appearance
+    train = scene.train_views()
+    rng = np.random.default_rng(0)
+    tr = []
+    for k, v in enumerate(scene.test_views()[:n_transfer]):
+        j = train[int(rng.integers(len(train)))]
+        cam = Camera.from_view(v)
+        emb = field.embeddings_of([j.name]) if field.wild else None
+        rgb = field.render(cam, emb)[0].numpy()
+        target, _ = rerender(
+            world,
+            records[v.name],
+            appearance=Appearance.from_dict(records[j.name]["appearance"]),
+            occluders="none",
+            seed=k,
+        )
+        target = target.image.astype(np.float32) / 255.0
+        target = cv2.resize(target, (v.width, v.height), interpolation=cv2.INTER_AREA)
+        tr.append(psnr(rgb, target))
+    out["transfer_psnr"] = float(np.mean(tr))
+    scores, labels = [], []
+    for v in train:
+        m = masks.get(v.name)
+        if m is None:
+            continue
+        t = np.load(truth_dir / f"{v.stem}.npz")["transient"].astype(np.float32)
+        scores.append(cv2.resize(m.astype(np.float32), t.shape[::-1]).ravel())
+        labels.append(t.ravel() > 0.5)
+    out["mask_auroc"] = (
+        float(auroc(np.concatenate(scores), np.concatenate(labels))) if scores else None
+    )
+    out.update(
+        {
+            k: field.metrics.get(k)
+            for k in (
+                "train_seconds",
+                "seconds_per_iteration",
+                "psnr_train",
+                "gaussians_unseen_removed",
+            )
+        }
+    )
+    del torch
+    return out
+
+
+def run_config(work: Path, scene: Path, sets: list[str]) -> dict:
+    args = ["reconstruct", "--data", str(scene)]
+    for s in sets:
+        args += ["--set", s]
+    wall, rss, stdout = _ptovs(work, *args)
+    art = Path(stdout.strip().splitlines()[-1].split(": ", 1)[1])
+    res = evaluate(art, scene)
+    res.update(wall_s=round(wall, 1), peak_rss_mb=round(rss), sets=sets)
+    return res
+
+
+def sfm_part(work: Path, scene: Path) -> dict:
+    import pycolmap
+
+    from ptovs.scene import load_scene
+
+    photos = work / "sfm_photos" / scene.name / "images"
+    if photos.parent.exists():
+        shutil.rmtree(photos.parent)
+    shutil.copytree(scene / "dense" / "images", photos)
+    t0 = time.perf_counter()
+    wall, rss, _ = _ptovs(work, "status", "--data", str(photos.parent))
+    sfm_scene = next((work / scene.name).glob("sfm/*/sparse")).parent
+    posed = load_scene(sfm_scene)
+    truth = {
+        r["name"]: r
+        for r in json.loads(
+            (scene / "synthetic" / "truth" / "cameras.json").read_text()
+        )["images"]
+    }
+    names = [v.name for v in posed.views]
+    est = np.array(
+        [-(v.cam_from_world[:3, :3].T @ v.cam_from_world[:3, 3]) for v in posed.views]
+    )
+    gT = [np.array(truth[n]["cam_from_world"]) for n in names]
+    gt = np.array([-(t[:3, :3].T @ t[:3, 3]) for t in gT])
+    sim = pycolmap.estimate_sim3d(est, gt)
+    aligned = np.array([sim * p for p in est])
+    radius = float(np.linalg.norm(gt - gt.mean(0), axis=1).mean())
+    rot = []
+    for v, t in zip(posed.views, gT, strict=True):
+        r = v.cam_from_world[:3, :3] @ sim.rotation.matrix().T
+        rot.append(
+            np.degrees(np.arccos(np.clip((np.trace(r @ t[:3, :3].T) - 1) / 2, -1, 1)))
+        )
+    cerr = np.linalg.norm(aligned - gt, axis=1)
+    res = dict(
+        photos=len(truth),
+        registered=len(names),
+        sfm_wall_s=round(wall, 1),
+        sfm_peak_rss_mb=round(rss),
+        rot_median_deg=float(np.median(rot)),
+        rot_p90_deg=float(np.percentile(rot, 90)),
+        centre_median=float(np.median(cerr)),
+        centre_p90=float(np.percentile(cerr, 90)),
+        radius=radius,
+    )
+    # train on the SfM poses; PSNR on its own held-out split (no truth alignment)
+    wall, rss, stdout = _ptovs(work, "reconstruct", "--data", str(photos.parent))
+    art = Path(stdout.strip().splitlines()[-1].split(": ", 1)[1])
+    from ptovs.artifacts import Artifact, read_json_dataset
+
+    with Artifact(art) as a:
+        m = read_json_dataset(a.root()["metrics_json"])
+    res.update(
+        train_wall_s=round(wall, 1),
+        psnr_train=m.get("psnr_train"),
+        psnr_test=m.get("psnr_test"),
+        total_s=round(time.perf_counter() - t0, 1),
+    )
+    return res
+
+
+def presets_part(work: Path, scene: Path, iterations: int) -> list[dict]:
+    rows = []
+    for preset in ("cpu", "authors"):
+        sets = [
+            f"preset={preset}",
+            f"iterations={iterations}",
+            f"densify_until={iterations}",
+            f"checkpoint_every={iterations}",
+        ]
+        res = run_config(work / f"presets_{preset}", scene, sets)
+        res["preset"] = preset
+        rows.append(res)
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    ap.add_argument(
+        "--parts", nargs="+", default=["default", "plain", "budgets", "sfm", "presets"]
+    )
+    ap.add_argument("--budgets", nargs="+", type=int, default=[1000, 2000, 4000])
+    ap.add_argument("--preset-iterations", type=int, default=200)
+    ap.add_argument("--data", type=Path, default=ROOT / "data")
+    ap.add_argument("--work", type=Path, default=ROOT / "work" / "bench")
+    args = ap.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    out_path = args.work / "bench_reconstruct.json"
+    results = json.loads(out_path.read_text()) if out_path.exists() else {}
+    results["machine"] = dict(
+        platform=platform.platform(),
+        cpus=os.cpu_count(),
+        date=time.strftime("%Y-%m-%d"),
+    )
+
+    def save():
+        out_path.write_text(json.dumps(results, indent=1))
+
+    for seed in args.seeds:
+        scene = _scene(args.data, seed)
+        if "default" in args.parts:
+            r = run_config(args.work / "default", scene, [])
+            results[f"default_s{seed}"] = r
+            save()
+            print(
+                f"| default | {seed} | {r['wall_s']} | {r['test_psnr']:.2f} | "
+                f"{r['transfer_psnr']:.2f} | {r['mask_auroc']:.3f} | {r['gaussians']} | "
+                f"{r['peak_rss_mb']} |",
+                flush=True,
+            )
+        if "plain" in args.parts:
+            r = run_config(args.work / "plain", scene, ["wild=false"])
+            results[f"plain_s{seed}"] = r
+            save()
+            print(
+                f"| plain | {seed} | {r['wall_s']} | {r['test_psnr']:.2f} | "
+                f"{r['transfer_psnr']:.2f} | – | {r['gaussians']} | {r['peak_rss_mb']} |",
+                flush=True,
+            )
+    seed0 = _scene(args.data, args.seeds[0])
+    if "budgets" in args.parts:
+        for it in args.budgets:
+            r = run_config(args.work / "budgets", seed0, [f"iterations={it}"])
+            results[f"budget_{it}"] = r
+            save()
+            print(
+                f"| {it} | {r['wall_s']} | {r['test_psnr']:.2f} | {r['transfer_psnr']:.2f} | "
+                f"{r['mask_auroc']:.3f} | {r['gaussians']} |",
+                flush=True,
+            )
+    if "sfm" in args.parts:
+        r = sfm_part(args.work / "sfm", seed0)
+        results["sfm"] = r
+        save()
+        print(json.dumps(r), flush=True)
+    if "presets" in args.parts:
+        for r in presets_part(args.work, seed0, args.preset_iterations):
+            results[f"preset_{r['preset']}"] = r
+            save()
+            print(
+                f"| {r['preset']} | {args.preset_iterations} | {r['seconds_per_iteration']} | "
+                f"{r['gaussians']} | {r['peak_rss_mb']} | {r['test_psnr']:.2f} |",
+                flush=True,
+            )
+
+
+if __name__ == "__main__":
+    main()

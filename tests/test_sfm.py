@@ -1,0 +1,208 @@
+"""SfM for folders of unposed photos (pycolmap), and its degenerate inputs."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+from click.testing import CliRunner
+
+from ptovs.cli import main
+from ptovs.errors import InputError
+from ptovs.scene import load_scene
+from ptovs.sfm import SfmConfig, _split_names, photo_dir, posed_scene
+
+
+def make_photo_walk(folder: Path, n: int = 20, seed: int = 3, size=(640, 480)) -> dict:
+    """Photos of a synthetic landmark from an arc of overlapping viewpoints.
+
+    Returns {file name: true cam_from_world [4, 4]}; the model is not written.
+    """
+    from ptovs.synthetic import world as sw
+
+    rng = np.random.default_rng(seed)
+    world = sw.build_world(rng, 5)
+    folder.mkdir(parents=True, exist_ok=True)
+    truth = {}
+    w, h = size
+    for i in range(n):
+        az = np.radians(-35 + 70 * i / (n - 1))
+        dist = 2.6 * world.radius
+        eye = np.array(
+            [
+                world.center[0] + dist * np.sin(az),
+                world.center[1] - dist * np.cos(az),
+                1.6 + 0.3 * (i % 3),
+            ]
+        )
+        f = 0.9 * w
+        K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
+        cam = sw.Camera(K, sw.look_at(eye, world.center + [0, 0, 0.2 * (i % 2)]), w, h)
+        app = sw.neutral_appearance()
+        view = sw.render(world, cam, app, [], aa=5)
+        name = f"photo_{i:02d}.jpg"
+        cv2.imwrite(
+            str(folder / name),
+            cv2.cvtColor(view.image, cv2.COLOR_RGB2BGR),
+            [cv2.IMWRITE_JPEG_QUALITY, 95],
+        )
+        truth[name] = cam.cam_from_world
+    return truth
+
+
+@pytest.fixture(scope="module")
+def photos(tmp_path_factory) -> tuple[Path, dict]:
+    """A folder with only photos (model withheld) and the true cameras."""
+    root = tmp_path_factory.mktemp("sfm") / "landmark"
+    truth = make_photo_walk(root / "images")
+    return root, {k: {"cam_from_world": v} for k, v in truth.items()}
+
+
+@pytest.fixture(scope="module")
+def posed(photos, tmp_path_factory):
+    data, truth = photos
+    work = tmp_path_factory.mktemp("work")
+    out = posed_scene(photo_dir(data), "landmark", work, SfmConfig())
+    return out, work
+
+
+def test_photo_folder_detection(photos, tiny_scene_dir, tmp_path):
+    data, _ = photos
+    assert photo_dir(data) == data / "images"
+    assert photo_dir(data / "images") == data / "images"
+    assert photo_dir(tiny_scene_dir) is None  # a posed PhotoTourism scene
+    assert photo_dir(tmp_path) is None  # empty
+
+
+def test_sfm_poses_match_truth_after_sim3(posed, photos):
+    out, _ = posed
+    _, truth = photos
+    scene = load_scene(out)
+    assert len(scene.views) >= 16, len(scene.views)  # measured 20/20
+    names = [v.name for v in scene.views]
+    est = np.array(
+        [-(v.cam_from_world[:3, :3].T @ v.cam_from_world[:3, 3]) for v in scene.views]
+    )
+    gt_T = {n: np.array(truth[n]["cam_from_world"]) for n in names}
+    gt = np.array([-(gt_T[n][:3, :3].T @ gt_T[n][:3, 3]) for n in names])
+    sim = pycolmap.estimate_sim3d(est, gt)
+    aligned = np.array([sim * p for p in est])
+    radius = np.linalg.norm(gt - gt.mean(0), axis=1).mean()
+    centre_err = np.linalg.norm(aligned - gt, axis=1) / radius
+    rel = []  # alignment-free: relative rotations between all pairs of photos
+    for i in range(len(names)):
+        for j in range(i + 1, len(names)):
+            r_est = (
+                scene.views[i].cam_from_world[:3, :3]
+                @ scene.views[j].cam_from_world[:3, :3].T
+            )
+            r_gt = gt_T[names[i]][:3, :3] @ gt_T[names[j]][:3, :3].T
+            cos = (np.trace(r_est @ r_gt.T) - 1) / 2
+            rel.append(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+    # Measured on this photo walk (14 photos at 480x360, ~380 SIFT features each on
+    # smooth procedural textures): relative rotation error median 1.9-2.5 deg, max
+    # ~5 deg, centres 5-7 % of the orbit radius; the focal length is only loosely
+    # constrained by a 70-degree arc; 1 run in 3 had centres at 33 %, so the walk
+    # is now 20 photos at 640x480 (4 of 4 runs passed). Thresholds leave room for
+    # COLMAP's multi-threaded randomness.
+    assert np.median(rel) < 4.0 and np.max(rel) < 10.0, (np.median(rel), np.max(rel))
+    assert np.median(centre_err) < 0.15, centre_err
+    # undistorted pinhole cameras, a split file with a held-out test photo
+    assert len(scene.test_views()) == len(_split_names(names, 0.1))
+    assert scene.points_xyz.shape[0] > 100
+
+
+def test_sfm_is_cached_and_the_stage_reads_it(posed, photos, tmp_path):
+    data, _ = photos
+    out, work = posed
+    again = posed_scene(photo_dir(data), "landmark", work, SfmConfig())
+    assert again == out  # cache hit: same key, same folder
+    res = CliRunner().invoke(
+        main, ["--work-dir", str(work), "status", "--data", str(data)]
+    )
+    assert res.exit_code == 0, res.output
+    assert "views" in res.output and "reconstruct" in res.output
+
+
+def test_split_names():
+    names = [f"{i:03d}.jpg" for i in range(30)]
+    test = _split_names(names, 0.1)
+    assert len(test) == 3
+    assert _split_names(names[:1], 0.1) == set() and _split_names(names, 0.0) == set()
+
+
+def _folder(tmp_path: Path, photos: Path, picks: list[int]) -> Path:
+    src = sorted((photos / "images").iterdir())
+    dst = tmp_path / "p" / "images"
+    dst.mkdir(parents=True)
+    for i in picks:
+        shutil.copy(src[i], dst / src[i].name)
+    return dst
+
+
+def test_two_photos_is_a_clear_error(photos, tmp_path):
+    data, _ = photos
+    folder = _folder(tmp_path, data, [0, 1])
+    res = CliRunner().invoke(
+        main,
+        [
+            "--work-dir",
+            str(tmp_path / "w"),
+            "reconstruct",
+            "--data",
+            str(folder.parent),
+        ],
+    )
+    assert res.exit_code != 0
+    assert "at least 3" in res.output and "Traceback" not in res.output
+
+
+def test_odd_photos_are_converted_skipped_or_listed(photos, tmp_path, caplog):
+    """Grey, 16-bit, alpha photos are posed; a truncated JPEG and a black photo are listed."""
+    data, _ = photos
+    folder = _folder(tmp_path, data, list(range(14)))
+    files = sorted(folder.iterdir())
+    img = cv2.imread(str(files[0]))
+    cv2.imwrite(
+        str(folder / (files[0].stem + ".png")), cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    )
+    files[0].unlink()
+    img = cv2.imread(str(files[1]))
+    cv2.imwrite(str(folder / (files[1].stem + ".png")), img.astype(np.uint16) * 257)
+    files[1].unlink()
+    img = cv2.imread(str(files[2]))
+    cv2.imwrite(
+        str(folder / (files[2].stem + ".png")),
+        np.dstack([img, np.full(img.shape[:2], 255, np.uint8)]),
+    )
+    files[2].unlink()
+    data_bytes = files[3].read_bytes()
+    files[3].write_bytes(data_bytes[: len(data_bytes) // 2])  # truncated JPEG
+    cv2.imwrite(str(folder / "black.jpg"), np.zeros_like(img))
+    with caplog.at_level("WARNING"):
+        out = posed_scene(folder, "odd", tmp_path / "w", SfmConfig())
+    msgs = " ".join(r.getMessage() for r in caplog.records)
+    assert files[3].name in msgs and "truncated" in msgs and "skipped" in msgs
+    assert "black.jpg" in msgs  # not registered, listed
+    scene = load_scene(out)
+    names = {v.name for v in scene.views}
+    for f in files[:3]:
+        assert f.stem + ".png" in names  # converted copies were posed
+    assert files[3].name not in names and "black.jpg" not in names
+
+
+def test_non_overlapping_photos_fail_clearly(tmp_path):
+    rng = np.random.default_rng(0)
+    folder = tmp_path / "noise"
+    folder.mkdir()
+    for i in range(4):  # unrelated random textures: no pair verifies
+        img = cv2.GaussianBlur(
+            (rng.random((240, 320, 3)) * 255).astype(np.uint8), (3, 3), 0
+        )
+        cv2.imwrite(str(folder / f"{i}.jpg"), img)
+    with pytest.raises(InputError, match="registered 0 of 4|registered [0-2] of 4"):
+        posed_scene(folder, "noise", tmp_path / "w", SfmConfig())
