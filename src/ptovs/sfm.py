@@ -34,7 +34,6 @@ Choices (measured on the bench preset, docs/benchmarks.md):
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import logging
 import os
 import shutil
@@ -47,7 +46,7 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
-from ptovs.artifacts import Store, json_dataset, read_json_dataset
+from ptovs.artifacts import Store, json_dataset
 from ptovs.errors import InputError, MissingInputError
 from ptovs.scene import jpeg_truncated
 
@@ -439,18 +438,14 @@ def _materialise(
     os.replace(tmp, out)
 
 
-def _photos_key(photos: list[Path], config: SfmConfig) -> str:
+def _photos_key(
+    photos: list[Path], folder: Path, cache: Path, config: SfmConfig
+) -> str:
     from ptovs.artifacts import artifact_key
+    from ptovs.stage import fingerprint_files
 
-    h = hashlib.sha256()
-    for p in photos:
-        h.update(p.name.encode())
-        with open(p, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 20), b""):
-                h.update(block)
-    return artifact_key(
-        NAME, VERSION, dataclasses.asdict(config), {"photos": h.hexdigest()}
-    )
+    digest = fingerprint_files(photos, folder, cache)  # cached by size and mtime
+    return artifact_key(NAME, VERSION, dataclasses.asdict(config), {"photos": digest})
 
 
 def posed_scene(
@@ -460,7 +455,9 @@ def posed_scene(
     from ptovs.artifacts import provenance
 
     photos = list_photos(photo_folder)
-    key = _photos_key(photos, config)
+    key = _photos_key(
+        photos, photo_folder, Path(work_dir) / scene / ".fingerprints.json", config
+    )
     store = Store(work_dir)
     out = store.path(scene, NAME, key).with_suffix("")  # <work>/<scene>/sfm/<key12>/
     with store.lock(scene, NAME, key):
@@ -519,14 +516,4 @@ def posed_scene(
                 sum(report["seconds"].values()),
                 out,
             )
-    return out
-
-
-def sfm_report(work_dir: Path, scene: str) -> list[dict[str, Any]]:
-    """Reports of the SfM runs cached for a scene (newest first)."""
-    store = Store(work_dir)
-    out = []
-    for art in store.others(scene, NAME, "-" * 64):
-        out.append(read_json_dataset(art.root()["report_json"]))
-        art.close()
     return out

@@ -326,8 +326,4 @@ def visibility(
     return total
 
 
-def unseen_count(weights: torch.Tensor, threshold: float) -> int:
-    return int((weights < threshold).sum())
-
-
 __all__ = ["TrainState", "in_frustum", "scene_extent", "train", "visibility"]

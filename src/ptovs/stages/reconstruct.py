@@ -178,14 +178,11 @@ def run(
         nets.eval()
 
     # per-view outputs: embeddings of every image, transient masks of train images
-    train_names = {v.name for v in train_views}
+    by_name = {v.name: img for v, img in zip(train_views, images, strict=True)}
+    train_names = set(by_name)
     own_psnr: dict[str, list[float]] = {"train": [], "test": []}
     for view in scene.views:
-        image = (
-            images[[v.name for v in train_views].index(view.name)]
-            if view.name in train_names
-            else scene.load_image(view)
-        )
+        image = by_name[view.name] if view.name in by_name else scene.load_image(view)
         cam = Camera.from_view(view)
         datasets: dict[str, Any] = {}
         if nets is not None:
@@ -240,9 +237,4 @@ def _count(inputs: Inputs, config: Config) -> int:
 command = stage_command(NAME, VERSION, Config, Inputs, run, count=_count)
 
 
-def load_field(art) -> WildField:
-    """The field of a reconstruct artifact (for later stages and tools)."""
-    return WildField.from_artifact(art)
-
-
-__all__ = ["Config", "Inputs", "command", "load_field", "run"]
+__all__ = ["Config", "Inputs", "command", "run"]
