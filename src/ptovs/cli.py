@@ -225,3 +225,104 @@ def export_ply(
     finally:
         art.close()
     click.echo(f"export-ply: {n} Gaussians -> {out}")
+
+
+EXTRACT_STAGES = ("render-appearances", "extract-features", "uncertainty")
+
+
+def _split_sets(sets: tuple[str, ...], stages: tuple[str, ...]) -> dict[str, list[str]]:
+    """`stage.key=value` items → {stage: ["key=value"]} for the given stages."""
+    out: dict[str, list[str]] = {s: [] for s in stages}
+    for item in sets:
+        head, _, rest = item.partition(".")
+        if head not in out or "=" not in rest:
+            raise click.UsageError(
+                f"--set {item!r}: write STAGE.KEY=VALUE with STAGE one of "
+                f"{', '.join(stages)} (e.g. extract-features.segmenter=graph)"
+            )
+        out[head].append(rest)
+    return out
+
+
+@main.command("extract")
+@scene_options
+@click.option(
+    "--set",
+    "sets",
+    multiple=True,
+    metavar="STAGE.KEY=VALUE",
+    help="Override a config value of one of the three stages (repeatable).",
+)
+@click.option("--force", is_flag=True, help="Recompute all three stages.")
+@click.pass_obj
+def extract(
+    obj: RunContext,
+    scene_name: str | None,
+    data: Path | None,
+    sets: tuple[str, ...],
+    force: bool,
+) -> None:
+    """Run render-appearances, extract-features and uncertainty for one scene.
+
+    The three preprocessing stages of the paper in order, each cached and
+    resumable on its own: a second `ptovs extract` does nothing, and a killed one
+    resumes in the stage (and at the view) where it stopped. Needs reconstruct.
+    """
+    import time
+
+    from ptovs.stage import Chain, execute
+
+    ref = resolve_scene(obj, scene_name, data)
+    chain = Chain(obj, ref, _split_sets(sets, EXTRACT_STAGES))
+    for stage in EXTRACT_STAGES:
+        was = chain.state(stage)[0]
+        t0 = time.perf_counter()
+        art = execute(chain, stage, force=force or obj.force)
+        what = "cached" if was == "done" and not (force or obj.force) else "done"
+        click.echo(
+            f"{stage:<20} {what:<7} {time.perf_counter() - t0:7.1f} s  {art.path}"
+        )
+        art.close()
+
+
+@main.command("export-features")
+@scene_options
+@click.option(
+    "--out",
+    type=click.Path(path_type=Path),
+    required=True,
+    help="Folder to write <id>_f.npy / <id>_s.npy (and _ma_<k> for renders) into.",
+)
+@click.pass_obj
+def export_features(
+    obj: RunContext, scene_name: str | None, data: Path | None, out: Path
+) -> None:
+    """Export extract-features as a LangSplat feature folder.
+
+    Writes, per train view, `<id>_f.npy` (float32 [n, 512]) and `<id>_s.npy`
+    (int32 [4, H, W] over LangSplat's levels default/s/m/l, -1 = no segment) for
+    the original, and `<id>_f_ma_<k>.npy` / `<id>_s_ma_<k>.npy` for the renders
+    (k = 0.. novel, the last = self), the layout the authors' code reads.
+    """
+    from ptovs.artifacts import read_json_dataset
+    from ptovs.features import SegmentFeatures, langsplat_suffix, write_langsplat
+    from ptovs.stage import Chain
+
+    ref = resolve_scene(obj, scene_name, data)
+    art = Chain(obj, ref).inputs_of("extract-features")
+    try:
+        meta = read_json_dataset(art.root()["levels_json"])
+        levels = tuple(meta["levels"])
+        novel = [a for a in meta["apps"] if a not in ("orig", "self")]
+        n = 0
+        for name in art.names():
+            view = art[name]
+            for app in meta["apps"]:
+                f = SegmentFeatures.from_view(view, app)
+                write_langsplat(
+                    out, Path(name).stem, f, levels, langsplat_suffix(app, novel)
+                )
+                n += 1
+    finally:
+        art.close()
+    click.echo(f"export-features: {n} images -> {out}")

@@ -89,6 +89,8 @@ class StageSpec:
     run: Callable[..., Any]
     kind: Literal["views", "single"]
     count: Callable[[Any, Any], int] | None = None
+    after: Callable[[Artifact], None] | None = None
+    """Runs on the finished (or cached) artifact, e.g. to write PNG previews."""
 
     @property
     def inputs(self) -> dict[str, str]:
@@ -341,6 +343,8 @@ def execute(chain: Chain, stage: str, *, force: bool = False) -> Artifact:
             log.info(
                 "cache hit: %s for %s (key %s), nothing to do", stage, scene, key[:12]
             )
+            if spec.after is not None:
+                spec.after(cached)
             return cached
         if cached is not None:
             cached.close()
@@ -394,6 +398,8 @@ def execute(chain: Chain, stage: str, *, force: bool = False) -> Artifact:
         )
         ckpt.clear()
         log.info("wrote %s (%s, %.1f s)", art.path, stage, elapsed)
+        if spec.after is not None:
+            spec.after(art)
         return art
 
 
@@ -448,10 +454,13 @@ def stage_command(
     *,
     kind: Literal["views", "single"] = "views",
     count: Callable[[Any, Any], int] | None = None,
+    after: Callable[[Artifact], None] | None = None,
     help: str | None = None,
 ) -> click.Command:
     """Register a stage and build its click command."""
-    REGISTRY[name] = StageSpec(name, version, config_cls, inputs_cls, run, kind, count)
+    REGISTRY[name] = StageSpec(
+        name, version, config_cls, inputs_cls, run, kind, count, after
+    )
     fields = "\n".join(
         f"  {f.name} = {f.default!r}" for f in dataclasses.fields(config_cls)
     )

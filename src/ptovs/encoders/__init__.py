@@ -19,7 +19,7 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-ENCODERS = ("synthetic", "clip")
+ENCODERS = ("synthetic", "openclip")
 
 
 @runtime_checkable
@@ -87,7 +87,9 @@ def get_encoder(name: str, **kwargs) -> Encoder:
 
     Args:
         name: "synthetic" (the stand-in of SYNTHETIC.md; kwargs: vocabulary=path
-            or dict) or "clip" (OpenCLIP from a local checkpoint; not built yet).
+            or dict) or "openclip" (OpenCLIP from a local checkpoint, extra
+            `[clip]`; kwargs: model=, checkpoint=, device=, batch_size=; "clip"
+            is accepted as an alias).
         **kwargs: passed to the encoder.
 
     Returns:
@@ -97,14 +99,10 @@ def get_encoder(name: str, **kwargs) -> Encoder:
         from ptovs.encoders.synthetic import SyntheticEncoder
 
         return SyntheticEncoder(**kwargs)
-    if name == "clip":
-        # Seam for the real backend: OpenCLIP ViT-B-16 from a local checkpoint
-        # (ENVIRONMENT.md 4-5), installed with the [clip] extra.
-        raise NotImplementedError(
-            "the 'clip' encoder is not implemented yet (OpenCLIP backend, issue "
-            "extract-features); install it with `pip install ptovs[clip]` once it "
-            "lands, or use --encoder synthetic"
-        )
+    if name in ("openclip", "clip"):
+        from ptovs.encoders.openclip import OpenClipEncoder
+
+        return OpenClipEncoder(**kwargs)
     raise ValueError(f"unknown encoder {name!r}; choose from {list(ENCODERS)}")
 
 

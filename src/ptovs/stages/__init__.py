@@ -9,4 +9,7 @@ from __future__ import annotations
 
 STAGE_MODULES: dict[str, str] = {
     "reconstruct": "ptovs.stages.reconstruct",
+    "render-appearances": "ptovs.stages.render_appearances",
+    "extract-features": "ptovs.stages.extract_features",
+    "uncertainty": "ptovs.stages.uncertainty",
 }

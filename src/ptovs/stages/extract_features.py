@@ -1,0 +1,182 @@
+"""Multi-level language features of every original image and render (PAPER_SPEC.md §4).
+
+Reads render-appearances. For each train view and each image of it (the original
+photo, the N−1 novel renders, the self render): segment at L levels (default 3:
+subpart / part / whole), crop every segment as LangSplat does (mask, bbox crop,
+square pad, resize, normalise) and encode it. One view at a time, resumable.
+
+Per train view and appearance slot `app` ∈ {orig, nov1.., self}: `seg_<app>`
+[L, H, W] int16 global table rows (-1 = no segment, see `ptovs.features`),
+`feat_<app>` [n, D] float16 unit rows, `nseg_<app>` [L] rows per level. Root:
+`levels_json` (level names, backends, slots).
+
+Backends: segmenter "graph" (OpenCV, CPU default) or "sam" (local checkpoint,
+extra [sam]); encoder "synthetic" (the stand-in; the default on synthetic scenes)
+or "openclip" (local checkpoint, extra [clip]; the default elsewhere). Or
+`import_dir`: a LangSplat feature folder (`<id>_f.npy`, `<id>_s.npy`, renders
+`<id>_f_ma_<k>.npy`) used instead of segmenting and encoding.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from ptovs.artifacts import Artifact, json_dataset, read_json_dataset
+from ptovs.encoders import Encoder, get_encoder, prepare_crop
+from ptovs.features import SegmentFeatures, langsplat_suffix, read_langsplat
+from ptovs.scene import check_size
+from ptovs.segment import Segmenter, check_levels, get_segmenter
+from ptovs.stage import scene_input, stage_command, upstream
+
+log = logging.getLogger(__name__)
+
+NAME = "extract-features"
+VERSION = 1
+
+
+@dataclass(frozen=True)
+class Config:
+    levels: tuple[str, ...] = ("s", "m", "l")
+    """Levels, from "default", "s", "m", "l" (LangSplat's four; the paper uses s/m/l)."""
+    segmenter: Literal["graph", "sam"] = "graph"
+    graph_k: tuple[float, ...] = ()
+    """Felzenszwalb k per level (empty: 100/300/1000/3000 for default/s/m/l)."""
+    graph_sigma: float = 0.8
+    graph_min_size: int = 100
+    """Smallest segment at 512×384, scaled with the image area."""
+    sam_checkpoint: str = ""
+    sam_model: str = "vit_h"
+    sam_points_per_side: int = 32
+    sam_crop_n_layers: int = 1
+    encoder: Literal["auto", "synthetic", "openclip"] = "auto"
+    """"auto": the stand-in on synthetic scenes, OpenCLIP elsewhere."""
+    clip_model: str = "ViT-B-16"
+    clip_checkpoint: str = ""
+    device: str = "cpu"
+    batch_size: int = 64
+    crop_size: int = 224
+    images: Literal["all", "orig"] = "all"
+    """"all": the original and every render; "orig": originals only."""
+    import_dir: str = ""
+    """A LangSplat feature folder to read instead of segmenting and encoding."""
+
+
+@dataclass(frozen=True)
+class Inputs:
+    scene: Any = scene_input()
+    renders: Artifact = upstream("render-appearances")
+
+
+def build_segmenter(config: Config) -> Segmenter:
+    levels = check_levels(config.levels)
+    if config.segmenter == "graph":
+        if config.graph_k and len(config.graph_k) != len(levels):
+            raise ValueError(f"graph_k needs one value per level {list(levels)}")
+        k = dict(zip(levels, config.graph_k, strict=True)) if config.graph_k else None
+        return get_segmenter(
+            "graph", levels=levels, k=k, sigma=config.graph_sigma, min_size=config.graph_min_size
+        )
+    return get_segmenter(
+        "sam",
+        checkpoint=config.sam_checkpoint,
+        model_type=config.sam_model,
+        levels=levels,
+        points_per_side=config.sam_points_per_side,
+        crop_n_layers=config.sam_crop_n_layers,
+        device=config.device,
+    )
+
+
+def build_encoder(config: Config, synthetic: bool) -> Encoder:
+    name = config.encoder
+    if name == "auto":
+        name = "synthetic" if synthetic else "openclip"
+    if name == "synthetic":
+        return get_encoder("synthetic")  # the image side needs no vocabulary
+    return get_encoder(
+        "openclip",
+        model=config.clip_model,
+        checkpoint=config.clip_checkpoint,
+        device=config.device,
+        batch_size=config.batch_size,
+    )
+
+
+def image_features(
+    image: np.ndarray,  # [H, W, 3] uint8 RGB
+    segmenter: Segmenter,
+    encoder: Encoder,
+    batch_size: int = 64,
+    crop_size: int = 224,
+) -> SegmentFeatures:
+    """Segment one image at every level and encode each segment's crop."""
+    levels = segmenter.segment(image)
+    feats = []
+    for level in levels:
+        rows = np.zeros((level.n, encoder.dim), np.float32)
+        for start in range(0, level.n, batch_size):  # bounded memory per batch
+            ids = range(start, min(start + batch_size, level.n))
+            crops = np.stack([prepare_crop(image, level.mask(i), crop_size) for i in ids])
+            rows[start : start + len(crops)] = encoder.encode_images(crops)
+        feats.append(rows)
+    return SegmentFeatures.from_levels(levels, feats, encoder.dim)
+
+
+def run(inputs: Inputs, config: Config, skip=frozenset()) -> Iterator[tuple[str | None, dict]]:
+    """Yield each train view's features for the original and every render."""
+    scene = inputs.scene
+    levels = check_levels(config.levels)
+    slots = read_json_dataset(inputs.renders.root()["slots_json"])["slots"]
+    apps = ["orig"] + (slots if config.images == "all" else [])
+    novel = [s for s in slots if s != "self"]
+    importing = bool(config.import_dir)
+    if importing:
+        folder = Path(config.import_dir)
+        if not folder.is_dir():
+            raise FileNotFoundError(f"import_dir {folder} is not a folder")
+    else:
+        segmenter = build_segmenter(config)
+        encoder = build_encoder(config, scene.synthetic)
+    for v in scene.train_views():
+        if v.name in skip:
+            continue
+        renders = inputs.renders[v.name]["rgb"] if len(apps) > 1 else None
+        out: dict[str, np.ndarray] = {}
+        for app in apps:
+            if importing:
+                f = read_langsplat(folder, v.stem, levels, langsplat_suffix(app, novel))
+                check_size(f.seg[0], v, f"imported LangSplat features {app}")
+            else:
+                if app == "orig":
+                    img = (scene.load_image(v) * 255.0 + 0.5).astype(np.uint8)
+                else:
+                    img = renders[slots.index(app)]
+                f = image_features(img, segmenter, encoder, config.batch_size, config.crop_size)
+            f.validate(f"{v.name} {app}")
+            out.update(f.datasets(app))
+        yield v.name, out
+    yield None, {
+        "levels_json": json_dataset(
+            {
+                "levels": list(levels),
+                "apps": apps,
+                "segmenter": "import" if importing else config.segmenter,
+                "encoder": "import" if importing else encoder.name,
+            }
+        )
+    }
+
+
+def _count(inputs: Inputs, config: Config) -> int:
+    return len(inputs.scene.train_views())
+
+
+command = stage_command(NAME, VERSION, Config, Inputs, run, count=_count)
+
+__all__ = ["Config", "Inputs", "build_encoder", "build_segmenter", "command", "image_features", "run"]
