@@ -11,7 +11,7 @@ CONFIG ?= configs/default.toml
 # scene folders under DATA (the PT-OVS `label` folder is not a scene)
 SCENES ?= $(filter-out label,$(notdir $(patsubst %/,%,$(wildcard $(DATA)/*/))))
 # implemented stages, in pipeline order (each issue adds its own)
-STAGES := reconstruct
+STAGES := reconstruct render-appearances extract-features uncertainty
 PTOVS  := $(BIN)/ptovs --work-dir $(WORK) --config $(CONFIG)
 
 .PHONY: setup demo test lint format bench scenes status clean-work $(SCENES)
@@ -20,8 +20,8 @@ setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q torch==2.13.0   # CPU wheel; never an unpinned torch
-	$(BIN)/pip install -q -e '.[dev]'
+	$(BIN)/pip install -q torch==2.13.0 torchvision==0.28.0  # CPU torch; never unpinned
+	$(BIN)/pip install -q -e '.[dev,clip,sam]'  # the extras' tests run in CI
 	touch $@
 
 demo: setup
@@ -44,6 +44,7 @@ bench: setup
 	$(BIN)/python bench/synth_timing.py
 	$(BIN)/python bench/encoder_calibration.py --seeds 0 1 2 --out $(WORK)/synthetic
 	$(BIN)/python bench/reconstruct.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
+	$(BIN)/python bench/extract.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
 
 scenes: $(SCENES)
 $(SCENES): setup

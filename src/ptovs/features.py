@@ -128,7 +128,9 @@ class SegmentFeatures:
             return cls(view[f"seg_{app}"], view[f"feat_{app}"], view[f"nseg_{app}"])
         except KeyError:
             have = sorted(k[4:] for k in view if k.startswith("seg_"))
-            raise KeyError(f"no features for appearance {app!r} (have {have})") from None
+            raise KeyError(
+                f"no features for appearance {app!r} (have {have})"
+            ) from None
 
 
 def view_apps(view: dict[str, np.ndarray]) -> list[str]:
@@ -150,7 +152,11 @@ def langsplat_suffix(app: str, novel_slots: list[str]) -> str:
 
 
 def write_langsplat(
-    folder: Path, stem: str, feats: SegmentFeatures, level_names: tuple[str, ...], suffix: str
+    folder: Path,
+    stem: str,
+    feats: SegmentFeatures,
+    level_names: tuple[str, ...],
+    suffix: str,
 ) -> None:
     """Write `<stem>_f<suffix>.npy` / `_s<suffix>.npy` in LangSplat's 4-level layout."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -166,7 +172,11 @@ def write_langsplat(
         block = feats.level_table(lv).astype(np.float32)
         rows.append(block)
         offset += len(block)
-    table = np.concatenate(rows) if rows else np.zeros((0, feats.table.shape[1]), np.float32)
+    table = (
+        np.concatenate(rows)
+        if rows
+        else np.zeros((0, feats.table.shape[1]), np.float32)
+    )
     np.save(folder / f"{stem}_f{suffix}.npy", table)
     np.save(folder / f"{stem}_s{suffix}.npy", seg)
 
@@ -191,7 +201,9 @@ def read_langsplat(
         table = np.load(fpath, allow_pickle=False)
         seg = np.load(spath, allow_pickle=False)
     except ValueError as exc:
-        raise ValueError(f"{fpath.parent}/{stem}: not a plain npy array ({exc})") from None
+        raise ValueError(
+            f"{fpath.parent}/{stem}: not a plain npy array ({exc})"
+        ) from None
     if table.ndim != 2 or seg.ndim != 3 or seg.shape[0] != len(LEVEL_NAMES):
         raise ValueError(
             f"{fpath}: expected table [n, D] and seg [4, H, W], got "

@@ -40,7 +40,9 @@ class GraphSegmenter:
 
     def segment(self, image: np.ndarray) -> list[Level]:
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-            raise ValueError(f"expected uint8 [H, W, 3], got {image.dtype} {image.shape}")
+            raise ValueError(
+                f"expected uint8 [H, W, 3], got {image.dtype} {image.shape}"
+            )
         h, w = image.shape[:2]
         min_size = max(4, round(self.min_size * h * w / REF_AREA))
         img = np.ascontiguousarray(image)

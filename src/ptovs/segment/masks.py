@@ -29,7 +29,9 @@ def box_iou(a: Tensor, b: Tensor) -> Tensor:
     wh = (rb - lt).clamp_min(0)
     inter = wh[..., 0] * wh[..., 1]
     union = area_a[:, None] + area_b[None, :] - inter
-    return torch.where(union > 0, inter / union.clamp_min(1e-12), torch.zeros_like(inter))
+    return torch.where(
+        union > 0, inter / union.clamp_min(1e-12), torch.zeros_like(inter)
+    )
 
 
 def box_nms(boxes: Tensor, scores: Tensor, iou_thr: float) -> Tensor:
@@ -144,7 +146,9 @@ def mask_nms_reference(
     return order[keep & keep_conf & keep_u & keep_l]
 
 
-def paint(masks: list[np.ndarray], shape: tuple[int, int]) -> tuple[np.ndarray, list[int]]:
+def paint(
+    masks: list[np.ndarray], shape: tuple[int, int]
+) -> tuple[np.ndarray, list[int]]:
     """Segment map from masks painted in list order (later masks overwrite).
 
     Args:

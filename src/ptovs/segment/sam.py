@@ -112,16 +112,23 @@ class SamSegmenter:
         thr = self.model.mask_threshold
         for (points,) in amg.batch_iterator(self.points_per_batch, points_all):
             pts = self.predictor.transform.apply_coords(points, crop.shape[:2])
-            pts_t = torch.as_tensor(pts, dtype=torch.float32, device=self.predictor.device)
+            pts_t = torch.as_tensor(
+                pts, dtype=torch.float32, device=self.predictor.device
+            )
             labels = torch.ones(len(pts), dtype=torch.int64, device=pts_t.device)
             logits, iou, _ = self.predictor.predict_torch(
-                pts_t[:, None, :], labels[:, None], multimask_output=True, return_logits=True
+                pts_t[:, None, :],
+                labels[:, None],
+                multimask_output=True,
+                return_logits=True,
             )
             for k in range(3):
                 lg, ip = logits[:, k], iou[:, k]
                 keep = ip > self.pred_iou_thresh
                 lg, ip = lg[keep], ip[keep]
-                stab = amg.calculate_stability_score(lg, thr, self.stability_score_offset)
+                stab = amg.calculate_stability_score(
+                    lg, thr, self.stability_score_offset
+                )
                 keep = stab >= self.stability_score_thresh
                 lg, ip, stab = lg[keep], ip[keep], stab[keep]
                 if not len(lg):
@@ -137,7 +144,9 @@ class SamSegmenter:
                         masks=masks.cpu(),
                         iou=ip[keep].float().cpu(),
                         stability=stab[keep].float().cpu(),
-                        boxes=amg.uncrop_boxes_xyxy(boxes[keep], crop_box).float().cpu(),
+                        boxes=amg.uncrop_boxes_xyxy(boxes[keep], crop_box)
+                        .float()
+                        .cpu(),
                     )
                 )
         self.predictor.reset_image()
@@ -196,17 +205,23 @@ class SamSegmenter:
                 continue
             data = {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
             if len(crop_boxes) > 1:  # across crops prefer masks from smaller crops
-                keep = box_nms(data["boxes"], 1.0 / data["crop_area"], self.crop_nms_thresh)
+                keep = box_nms(
+                    data["boxes"], 1.0 / data["crop_area"], self.crop_nms_thresh
+                )
                 keep = torch.sort(keep).values
                 data = {key: v[keep] for key, v in data.items()}
             data = self._postprocess_small_regions(data)
-            keep = torch.sort(mask_nms(data["masks"], data["stability"] * data["iou"])).values
+            keep = torch.sort(
+                mask_nms(data["masks"], data["stability"] * data["iou"])
+            ).values
             levels[level] = {key: v[keep] for key, v in data.items()}
         return levels
 
     def segment(self, image: np.ndarray) -> list[Level]:
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-            raise ValueError(f"expected uint8 [H, W, 3], got {image.dtype} {image.shape}")
+            raise ValueError(
+                f"expected uint8 [H, W, 3], got {image.dtype} {image.shape}"
+            )
         per_level = self.masks(image)
         out = []
         for level in self.levels:

@@ -80,7 +80,11 @@ def build_segmenter(config: Config) -> Segmenter:
             raise ValueError(f"graph_k needs one value per level {list(levels)}")
         k = dict(zip(levels, config.graph_k, strict=True)) if config.graph_k else None
         return get_segmenter(
-            "graph", levels=levels, k=k, sigma=config.graph_sigma, min_size=config.graph_min_size
+            "graph",
+            levels=levels,
+            k=k,
+            sigma=config.graph_sigma,
+            min_size=config.graph_min_size,
         )
     return get_segmenter(
         "sam",
@@ -122,13 +126,17 @@ def image_features(
         rows = np.zeros((level.n, encoder.dim), np.float32)
         for start in range(0, level.n, batch_size):  # bounded memory per batch
             ids = range(start, min(start + batch_size, level.n))
-            crops = np.stack([prepare_crop(image, level.mask(i), crop_size) for i in ids])
+            crops = np.stack(
+                [prepare_crop(image, level.mask(i), crop_size) for i in ids]
+            )
             rows[start : start + len(crops)] = encoder.encode_images(crops)
         feats.append(rows)
     return SegmentFeatures.from_levels(levels, feats, encoder.dim)
 
 
-def run(inputs: Inputs, config: Config, skip=frozenset()) -> Iterator[tuple[str | None, dict]]:
+def run(
+    inputs: Inputs, config: Config, skip=frozenset()
+) -> Iterator[tuple[str | None, dict]]:
     """Yield each train view's features for the original and every render."""
     scene = inputs.scene
     levels = check_levels(config.levels)
@@ -157,20 +165,25 @@ def run(inputs: Inputs, config: Config, skip=frozenset()) -> Iterator[tuple[str 
                     img = (scene.load_image(v) * 255.0 + 0.5).astype(np.uint8)
                 else:
                     img = renders[slots.index(app)]
-                f = image_features(img, segmenter, encoder, config.batch_size, config.crop_size)
+                f = image_features(
+                    img, segmenter, encoder, config.batch_size, config.crop_size
+                )
             f.validate(f"{v.name} {app}")
             out.update(f.datasets(app))
         yield v.name, out
-    yield None, {
-        "levels_json": json_dataset(
-            {
-                "levels": list(levels),
-                "apps": apps,
-                "segmenter": "import" if importing else config.segmenter,
-                "encoder": "import" if importing else encoder.name,
-            }
-        )
-    }
+    yield (
+        None,
+        {
+            "levels_json": json_dataset(
+                {
+                    "levels": list(levels),
+                    "apps": apps,
+                    "segmenter": "import" if importing else config.segmenter,
+                    "encoder": "import" if importing else encoder.name,
+                }
+            )
+        },
+    )
 
 
 def _count(inputs: Inputs, config: Config) -> int:
@@ -179,4 +192,12 @@ def _count(inputs: Inputs, config: Config) -> int:
 
 command = stage_command(NAME, VERSION, Config, Inputs, run, count=_count)
 
-__all__ = ["Config", "Inputs", "build_encoder", "build_segmenter", "command", "image_features", "run"]
+__all__ = [
+    "Config",
+    "Inputs",
+    "build_encoder",
+    "build_segmenter",
+    "command",
+    "image_features",
+    "run",
+]

@@ -91,7 +91,9 @@ def _resolve_ids(targets: Any, scene, k: int) -> list[str] | None:
             "image names or stems (see `ptovs status` / the split TSV)"
         )
     if len(ids) != k:
-        log.warning("%d explicit targets for N - 1 = %d: using %d", len(ids), k, len(ids))
+        log.warning(
+            "%d explicit targets for N - 1 = %d: using %d", len(ids), k, len(ids)
+        )
     return [train[i].name for i in ids]
 
 
@@ -99,8 +101,12 @@ def _quality(field: WildField, scene, views, backend: str) -> np.ndarray:
     from tqdm import tqdm
 
     q = np.zeros(len(views))
-    for i, v in enumerate(tqdm(views, desc="self-render quality", leave=False, disable=None)):
-        rgb = field.render(Camera.from_view(v), field.embeddings_of([v.name]), backend=backend)[0]
+    for i, v in enumerate(
+        tqdm(views, desc="self-render quality", leave=False, disable=None)
+    ):
+        rgb = field.render(
+            Camera.from_view(v), field.embeddings_of([v.name]), backend=backend
+        )[0]
         q[i] = float((rgb - torch.from_numpy(scene.load_image(v))).abs().mean())
     return q
 
@@ -121,9 +127,13 @@ def run(
     if state is not None and "slots" in state:  # resume: the same choice
         slots, targets, report = state["slots"], state["targets"], state["report"]
     else:
-        report: dict = {"mode": config.targets if isinstance(config.targets, str) else "list"}
+        report: dict = {
+            "mode": config.targets if isinstance(config.targets, str) else "list"
+        }
         if not field.wild:
-            log.warning("%s: plain field, no appearances to vary: self render only", scene.name)
+            log.warning(
+                "%s: plain field, no appearances to vary: self render only", scene.name
+            )
             targets: list[str | None] = []
             report["note"] = "plain (not in-the-wild) field: self render only"
         elif config.targets == "same" or k == 0:
@@ -134,7 +144,12 @@ def run(
                 q = _quality(field, scene, views, config.backend)
                 emb = field.embeddings_of([v.name for v in views]).numpy()
                 ids, sel = select_targets(
-                    [v.name for v in views], q, emb, k, config.quality_quantile, config.seed
+                    [v.name for v in views],
+                    q,
+                    emb,
+                    k,
+                    config.quality_quantile,
+                    config.seed,
                 )
                 report.update(sel)
                 report["mode"] = "select"
@@ -168,10 +183,13 @@ def run(
         yield v.name, {"rgb": out, "l1_self": np.float32(l1)}
     report["slots"] = slots
     report["targets"] = targets
-    yield None, {
-        "slots_json": json_dataset({"slots": slots, "targets": targets}),
-        "selection_json": json_dataset(report),
-    }
+    yield (
+        None,
+        {
+            "slots_json": json_dataset({"slots": slots, "targets": targets}),
+            "selection_json": json_dataset(report),
+        },
+    )
 
 
 def _count(inputs: Inputs, config: Config) -> int:

@@ -78,7 +78,9 @@ def level_maps(
     ok_t = (ro >= 0) & (rs >= 0)
     ut = np.zeros(ro.shape, np.float32)
     if ok_t.any():  # Eq. U_T per unique (orig row, self row) pair
-        pairs, inv = np.unique(np.stack((ro[ok_t], rs[ok_t]), 1), axis=0, return_inverse=True)
+        pairs, inv = np.unique(
+            np.stack((ro[ok_t], rs[ok_t]), 1), axis=0, return_inverse=True
+        )
         a = fo.table[pairs[:, 0]].astype(np.float32)
         b = fs.table[pairs[:, 1]].astype(np.float32)
         sq = _sq_norms(a) + _sq_norms(b) - 2.0 * (a * b).sum(1)
@@ -91,7 +93,10 @@ def level_maps(
     if ok_a.any():  # Eq. U_A per unique tuple of member rows
         tuples, inv = np.unique(rows[ok_a], axis=0, return_inverse=True)
         f = np.stack(
-            [feats[m].table[tuples[:, j]].astype(np.float32) for j, m in enumerate(members)],
+            [
+                feats[m].table[tuples[:, j]].astype(np.float32)
+                for j, m in enumerate(members)
+            ],
             1,
         )  # [T, M, D]
         mean = f.mean(1)
@@ -179,10 +184,13 @@ def run(
         if name in skip:
             continue
         ut, ua, ok_t, ok_a = raw_maps(art[name], config)
-        yield name, {
-            "u_t": normalise(ut, ok_t, *rng["u_t"]),
-            "u_a": normalise(ua, ok_a, *rng["u_a"]),
-        }
+        yield (
+            name,
+            {
+                "u_t": normalise(ut, ok_t, *rng["u_t"]),
+                "u_a": normalise(ua, ok_a, *rng["u_a"]),
+            },
+        )
     yield None, {"range_json": json_dataset(dict(rng, ua_members=config.ua_members))}
 
 
@@ -198,7 +206,9 @@ def write_previews(art: Artifact, folder: Path, n: int) -> list[Path]:
         view = art[name]
         tiles = []
         for key in ("u_t", "u_a"):
-            u8 = (np.clip(view[key].astype(np.float32), 0, 1) * 255 + 0.5).astype(np.uint8)
+            u8 = (np.clip(view[key].astype(np.float32), 0, 1) * 255 + 0.5).astype(
+                np.uint8
+            )
             tiles.append(cv2.applyColorMap(u8, cv2.COLORMAP_INFERNO))
         gap = np.full((tiles[0].shape[0], 4, 3), 255, np.uint8)
         path = folder / f"{Path(name).stem}_ut_ua.png"
@@ -219,6 +229,8 @@ def _count(inputs: Inputs, config: Config) -> int:
     return len(inputs.features.names())
 
 
-command = stage_command(NAME, VERSION, Config, Inputs, run, count=_count, after=_previews)
+command = stage_command(
+    NAME, VERSION, Config, Inputs, run, count=_count, after=_previews
+)
 
 __all__ = ["Config", "Inputs", "command", "normalise", "raw_maps", "run", "scene_range"]

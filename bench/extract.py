@@ -1,0 +1,216 @@
+"""Benchmark render-appearances, extract-features and uncertainty (issue 9 targets).
+
+python bench/extract.py                       # bench seeds 0 1 2, graph timing, scale memory
+python bench/extract.py --parts bench --seeds 0
+python bench/extract.py --parts graph scale
+
+Parts:
+  bench  per seed, through the CLI: reconstruct (cached from bench/reconstruct.py's
+         work dir when present), then each stage in its own process: wall time and
+         peak RSS; the chosen appearances (ids, self-render L1, min pairwise L1);
+         each novel render against the world re-rendered with the target's
+         appearance and no occluders (PSNR), and the self render against the
+         world under the view's own appearance without occluders; stand-in
+         encoding time per image; AUROC of U_T (and U_A) against the true
+         transient masks of the train images
+  graph  graph segmentation at 3 levels on 512×384 images (mean of 10)
+  scale  the `scale` preset (3,000 views at 64×48) with a 200-iteration
+         reconstruct: wall time and peak RSS of each of the three stages
+
+Results go to <work>/bench_extract.json and are printed as markdown rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from reconstruct import _ptovs, _scene  # noqa: E402  (same folder)
+
+ROOT = Path(__file__).resolve().parents[1]
+STAGES = ("render-appearances", "extract-features", "uncertainty")
+
+
+def _art(stdout: str) -> Path:
+    return Path(stdout.strip().splitlines()[-1].split(": ", 1)[1])
+
+
+def run_stages(work: Path, scene: Path, recon_sets: list[str]) -> dict:
+    group = [f"--set=reconstruct.{s}" for s in recon_sets]
+    wall, rss, out = _ptovs(work, *group, "reconstruct", "--data", str(scene))
+    res: dict = {"reconstruct": {"wall_s": round(wall, 1), "peak_rss_mb": round(rss)}}
+    for stage in STAGES:
+        wall, rss, out = _ptovs(work, *group, stage, "--data", str(scene))
+        res[stage] = {
+            "wall_s": round(wall, 1),
+            "peak_rss_mb": round(rss),
+            "path": str(_art(out)),
+        }
+    return res
+
+
+def evaluate(res: dict, scene_dir: Path, n_views: int = 10) -> dict:
+    import cv2
+
+    from ptovs.artifacts import Artifact, read_json_dataset
+    from ptovs.field.losses import auroc, psnr
+    from ptovs.scene import load_scene
+    from ptovs.synthetic.generate import load_truth, rerender
+    from ptovs.synthetic.world import Appearance
+
+    scene = load_scene(scene_dir)
+    world, cams = load_truth(scene_dir)
+    records = {r["name"]: r for r in cams["images"]}
+    truth = scene_dir / "synthetic" / "truth"
+    out: dict = {}
+    with Artifact(Path(res["render-appearances"]["path"])) as art:
+        sel = read_json_dataset(art.root()["selection_json"])
+        slots = read_json_dataset(art.root()["slots_json"])
+        out["selection"] = {
+            k: sel.get(k)
+            for k in (
+                "mode",
+                "chosen",
+                "quality",
+                "eps_q",
+                "eps_d",
+                "candidates",
+                "min_pairwise_l1",
+                "note",
+            )
+        }
+        views = scene.train_views()
+        pick = np.linspace(0, len(views) - 1, min(n_views, len(views))).astype(int)
+        per_slot: dict[str, list[float]] = {s: [] for s in slots["slots"]}
+        for i in pick:
+            v = views[i]
+            rgb = art[v.name]["rgb"].astype(np.float32) / 255.0
+            for s, (slot, target) in enumerate(
+                zip(slots["slots"], slots["targets"] + [v.name], strict=True)
+            ):
+                app = Appearance.from_dict(records[target or v.name]["appearance"])
+                ref, _ = rerender(
+                    world,
+                    records[v.name],
+                    appearance=app,
+                    occluders="none",
+                    seed=int(i),
+                )
+                ref = ref.image.astype(np.float32) / 255.0
+                ref = cv2.resize(ref, (v.width, v.height), interpolation=cv2.INTER_AREA)
+                per_slot[slot].append(psnr(rgb[s], ref))
+        out["render_psnr"] = {
+            k: round(float(np.mean(x)), 2) for k, x in per_slot.items()
+        }
+    with Artifact(Path(res["uncertainty"]["path"])) as art:
+        st, sa, lab = [], [], []
+        for name in art.names():
+            t = np.load(truth / f"{Path(name).stem}.npz")["transient"]
+            st.append(art[name]["u_t"].astype(np.float32).ravel())
+            sa.append(art[name]["u_a"].astype(np.float32).ravel())
+            lab.append(t.ravel() > 0.5)
+        lab_all = np.concatenate(lab)
+        out["ut_auroc"] = round(float(auroc(np.concatenate(st), lab_all)), 4)
+        out["ua_auroc"] = round(float(auroc(np.concatenate(sa), lab_all)), 4)
+        out["transient_share"] = round(float(lab_all.mean()), 4)
+    with Artifact(Path(res["extract-features"]["path"])) as art:
+        n_img = sum(
+            len([k for k in art[n] if k.startswith("seg_")]) for n in art.names()
+        )
+        segs = [int(art[n]["nseg_orig"].sum()) for n in art.names()]
+    out["images_encoded"] = n_img
+    out["segments_per_original"] = round(float(np.mean(segs)), 1)
+    out["extract_s_per_image"] = round(res["extract-features"]["wall_s"] / n_img, 3)
+    return out
+
+
+def graph_timing(scene_dir: Path, n: int = 10) -> dict:
+    import cv2
+
+    from ptovs.segment import get_segmenter
+
+    seg = get_segmenter("graph")
+    files = sorted((scene_dir / "dense" / "images").glob("*.jpg"))[:n]
+    times, counts = [], []
+    for f in files:
+        img = cv2.cvtColor(cv2.imread(str(f)), cv2.COLOR_BGR2RGB)
+        img = cv2.resize(img, (512, 384), interpolation=cv2.INTER_AREA)
+        seg.segment(img)  # warm
+        t0 = time.perf_counter()
+        levels = seg.segment(img)
+        times.append(time.perf_counter() - t0)
+        counts.append([lv.n for lv in levels])
+    return {
+        "s_per_image": round(float(np.mean(times)), 4),
+        "max_s": round(float(np.max(times)), 4),
+        "segments_s_m_l": np.mean(counts, 0).round(1).tolist(),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    ap.add_argument("--parts", nargs="+", default=["graph", "bench", "scale"])
+    ap.add_argument("--data", type=Path, default=ROOT / "data")
+    ap.add_argument("--work", type=Path, default=ROOT / "work" / "bench")
+    ap.add_argument("--scale-iterations", type=int, default=200)
+    args = ap.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    out_path = args.work / "bench_extract.json"
+    results = json.loads(out_path.read_text()) if out_path.exists() else {}
+    results["machine"] = dict(
+        platform=platform.platform(),
+        cpus=os.cpu_count(),
+        date=time.strftime("%Y-%m-%d"),
+    )
+
+    def save():
+        out_path.write_text(json.dumps(results, indent=1))
+
+    if "graph" in args.parts:
+        results["graph"] = graph_timing(_scene(args.data, args.seeds[0]))
+        save()
+        print("graph:", results["graph"], flush=True)
+    if "bench" in args.parts:
+        for seed in args.seeds:
+            scene = _scene(args.data, seed)
+            res = run_stages(args.work / "default", scene, [])
+            res.update(evaluate(res, scene))
+            results[f"bench_s{seed}"] = res
+            save()
+            t = " | ".join(
+                f"{res[s]['wall_s']} s / {res[s]['peak_rss_mb']} MB" for s in STAGES
+            )
+            print(
+                f"| {seed} | {t} | {res['ut_auroc']:.3f} | {res['ua_auroc']:.3f} | "
+                f"{res['render_psnr']} | {res['selection']['chosen']} |",
+                flush=True,
+            )
+    if "scale" in args.parts:
+        from ptovs.synthetic import generate_scene
+
+        scene = args.data / "scale_s0"
+        if not (scene / "dense").is_dir():
+            generate_scene(args.data, preset="scale", seed=0)
+        res = run_stages(
+            args.work / "scale",
+            scene,
+            [f"iterations={args.scale_iterations}", "checkpoint_every=100"],
+        )
+        results["scale_s0"] = res
+        save()
+        print("scale:", json.dumps(res), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,232 @@
+"""Segmenters (graph, SAM), mask filtering, and the OpenCLIP encoder backend."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from ptovs.compat import available
+from ptovs.encoders import get_encoder
+from ptovs.segment import NO_SEGMENT, get_segmenter
+from ptovs.segment.masks import box_iou, box_nms, mask_nms, mask_nms_reference, paint
+
+HAS_SAM = available("segment_anything")
+HAS_CLIP = available("open_clip")
+NO_SAM = "extra [sam] not installed (pip install torchvision==0.28.0 -e '.[sam]')"
+NO_CLIP = "extra [clip] not installed (pip install torchvision==0.28.0 -e '.[clip]')"
+
+
+def _blocks(h=96, w=128) -> np.ndarray:
+    """An image of flat coloured blocks with mild noise."""
+    rng = np.random.default_rng(0)
+    img = np.zeros((h, w, 3), np.float32)
+    img[:, : w // 2] = (200, 40, 40)
+    img[:, w // 2 :] = (40, 40, 200)
+    img[h // 2 :, w // 4 : 3 * w // 4] = (40, 200, 40)
+    img += rng.normal(0, 3, img.shape)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+# ---------------------------------------------------------------- graph --
+
+
+def test_graph_levels_cover_and_coarsen():
+    seg = get_segmenter("graph")
+    img = (np.random.default_rng(1).random((120, 160, 3)) * 255).astype(np.uint8)
+    img = np.repeat(np.repeat(img[::8, ::8], 8, 0), 8, 1)  # blocky texture
+    levels = seg.segment(img)
+    assert len(levels) == 3
+    ns = []
+    for lv in levels:
+        assert lv.labels.shape == (120, 160) and lv.labels.dtype == np.int32
+        assert lv.labels.min() == 0  # every pixel covered
+        assert np.array_equal(np.unique(lv.labels), np.arange(lv.n))
+        ns.append(lv.n)
+    assert ns[0] >= ns[1] >= ns[2] and ns[0] > ns[2]
+    flat = seg.segment(_blocks())[2].labels  # whole level on three flat blocks
+    h, w = flat.shape
+    for block in (
+        flat[: h // 2, : w // 4],
+        flat[: h // 2, -w // 4 :],
+        flat[-h // 4 :, w // 3 : 2 * w // 3],
+    ):
+        assert np.bincount(block.ravel()).max() > 0.9 * block.size  # one segment each
+    with pytest.raises(ValueError):
+        seg.segment(np.zeros((10, 10, 3), np.float32))
+    with pytest.raises(ValueError, match="levels"):
+        get_segmenter("graph", levels=("s", "xl"))
+
+
+# ---------------------------------------------------------------- masks --
+
+
+def _random_masks(rng, m, h=24, w=20):
+    masks = np.zeros((m, h, w), bool)
+    for i in range(m):
+        y0, x0 = rng.integers(0, h - 4), rng.integers(0, w - 4)
+        y1, x1 = rng.integers(y0 + 1, h + 1), rng.integers(x0 + 1, w + 1)
+        masks[i, y0:y1, x0:x1] = True
+    # nested and duplicated masks exercise the inner and IoU rules
+    masks[1] = masks[0]
+    masks[2] = False
+    masks[2, 2:20, 2:18] = True
+    masks[3] = False
+    masks[3, 5:8, 5:8] = True
+    return torch.from_numpy(masks)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_mask_nms_matches_reference(seed):
+    rng = np.random.default_rng(seed)
+    masks = _random_masks(rng, 14)
+    scores = torch.from_numpy(rng.random(14)).float()
+    got = mask_nms(masks, scores)
+    want = mask_nms_reference(masks, scores)
+    assert got.tolist() == want.tolist()
+    assert len(got) < 14  # something was filtered
+
+
+def test_mask_nms_rules_and_edges():
+    big = torch.zeros(1, 20, 20, dtype=torch.bool)
+    big[0, :, :] = True
+    small = torch.zeros(1, 20, 20, dtype=torch.bool)
+    small[0, :4, :4] = True  # fully inside `big`, covers 4 % of it
+    masks = torch.cat([big, small])
+    # the inner mask goes, whichever scores higher
+    assert mask_nms(masks, torch.tensor([0.9, 0.8])).tolist() == [0]
+    assert mask_nms(masks, torch.tensor([0.8, 0.9])).tolist() == [0]
+    # nothing above the score threshold: the top 3 survive that rule
+    low = torch.tensor([0.1, 0.2])
+    assert sorted(mask_nms(torch.cat([small, ~small]), low).tolist()) == [0, 1]
+    assert mask_nms(torch.zeros(0, 5, 5, dtype=torch.bool), torch.zeros(0)).numel() == 0
+
+
+def test_box_nms_greedy():
+    boxes = torch.tensor(
+        [[0, 0, 10, 10], [1, 1, 11, 11], [20, 20, 30, 30], [0, 0, 10, 10.5]]
+    )
+    scores = torch.tensor([0.9, 0.8, 0.7, 0.95])
+    assert box_nms(boxes, scores, 0.5).tolist() == [3, 2]
+    assert box_iou(boxes[:1], boxes[:1]).item() == pytest.approx(1.0)
+    assert box_nms(torch.zeros(0, 4), torch.zeros(0), 0.5).numel() == 0
+
+
+def test_paint_later_masks_win_and_ids_are_dense():
+    a = np.zeros((4, 4), bool)
+    a[:2] = True
+    b = np.zeros((4, 4), bool)
+    b[:3] = True  # covers a entirely: a disappears
+    c = np.zeros((4, 4), bool)
+    c[3, 3] = True
+    labels, kept = paint([a, b, c], (4, 4))
+    assert kept == [1, 2]
+    assert labels[0, 0] == 0 and labels[3, 3] == 1 and labels[3, 0] == NO_SEGMENT
+
+
+# ------------------------------------------------------------------ SAM --
+
+
+@pytest.mark.skipif(not HAS_SAM, reason=NO_SAM)
+def test_sam_generator_levels_with_disk_predictions(monkeypatch):
+    """The generator loop on a predictor that answers each point with three disks."""
+    from ptovs.segment.sam import SamSegmenter, tiny_sam
+
+    seg = SamSegmenter(
+        model=tiny_sam(), points_per_side=4, crop_n_layers=1, min_mask_region_area=4
+    )
+    radii = (4.0, 9.0, 16.0)  # s, m, l
+
+    def predict_torch(points, labels, multimask_output=True, return_logits=True):
+        h, w = seg.predictor.original_size
+        scale = seg.predictor.transform.target_length / max(h, w)
+        p = points[:, 0, :] / scale  # back to crop pixels
+        yy, xx = torch.meshgrid(
+            torch.arange(h) + 0.5, torch.arange(w) + 0.5, indexing="ij"
+        )
+        d = torch.sqrt(
+            (xx[None] - p[:, 0, None, None]) ** 2
+            + (yy[None] - p[:, 1, None, None]) ** 2
+        )
+        logits = torch.stack([(r - d) * 4 for r in radii], 1)
+        iou = torch.full((len(p), 3), 0.95)
+        return logits, iou, None
+
+    monkeypatch.setattr(seg.predictor, "predict_torch", predict_torch)
+    img = _blocks(64, 64)
+    levels = seg.segment(img)
+    assert len(levels) == 3
+    areas = []
+    for lv in levels:
+        assert lv.labels.shape == (64, 64) and lv.n > 0
+        assert np.array_equal(np.unique(lv.labels[lv.labels >= 0]), np.arange(lv.n))
+        assert len(lv.masks) == lv.n
+        for k in range(lv.n):  # each visible id lies inside its crop mask
+            assert lv.masks[k][lv.labels == k].all()
+        areas.append(np.mean([m.sum() for m in lv.masks]))
+    assert areas[0] < areas[1] < areas[2]  # subpart < part < whole
+
+
+@pytest.mark.skipif(not HAS_SAM, reason=NO_SAM)
+def test_sam_tiny_random_model_runs(tmp_path):
+    from ptovs.segment.sam import SamSegmenter, load_sam, tiny_sam
+
+    model = tiny_sam()
+    seg = SamSegmenter(
+        model=model,
+        points_per_side=4,
+        crop_n_layers=0,
+        pred_iou_thresh=-1e9,
+        stability_score_thresh=0.0,
+    )
+    levels = seg.segment(_blocks(48, 64))
+    assert [lv.labels.shape for lv in levels] == [(48, 64)] * 3
+    for lv in levels:  # random weights: whatever comes out is consistent
+        assert lv.labels.min() >= NO_SEGMENT and (
+            lv.masks is None or len(lv.masks) == lv.n
+        )
+    with pytest.raises(FileNotFoundError, match="sam_checkpoint"):
+        load_sam(tmp_path / "missing.pth")
+    with pytest.raises(ValueError, match="sam_checkpoint"):
+        get_segmenter("sam")
+
+
+# ------------------------------------------------------------- OpenCLIP --
+
+
+@pytest.mark.skipif(not HAS_CLIP, reason=NO_CLIP)
+def test_openclip_tiny_shapes_units_and_checkpoint(tmp_path):
+    from ptovs.encoders.openclip import OpenClipEncoder, register_tiny
+
+    name = register_tiny()
+    enc = OpenClipEncoder(name, random_weights=True, batch_size=3)
+    crops = np.random.default_rng(0).random((7, 224, 224, 3)).astype(np.float32)
+    f = enc.encode_images(crops)
+    assert f.shape == (7, 64) and f.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(f, axis=1), 1, atol=1e-5)
+    np.testing.assert_allclose(
+        enc.encode_images(crops[:2]), f[:2], atol=1e-5
+    )  # batch-free
+    t = enc.encode_texts(["Rose Window", "object"])
+    assert t.shape == (2, 64)
+    np.testing.assert_allclose(np.linalg.norm(t, axis=1), 1, atol=1e-5)
+    # a saved state dict loads back (weights_only) and gives the same features
+    ckpt = tmp_path / "tiny.pt"
+    torch.save(enc.net.state_dict(), ckpt)
+    enc2 = get_encoder("openclip", model=name, checkpoint=ckpt)
+    np.testing.assert_allclose(enc2.encode_images(crops[:2]), f[:2], atol=1e-5)
+    with pytest.raises(FileNotFoundError, match="clip_checkpoint"):
+        get_encoder("openclip", model=name, checkpoint=tmp_path / "nope.pt")
+    with pytest.raises(ValueError, match="clip_checkpoint"):
+        get_encoder("openclip", model=name)
+
+
+@pytest.mark.skipif(not HAS_CLIP, reason=NO_CLIP)
+def test_extract_features_with_openclip_backend():
+    from ptovs.encoders.openclip import OpenClipEncoder, register_tiny
+    from ptovs.stages.extract_features import image_features
+
+    enc = OpenClipEncoder(register_tiny(), random_weights=True)
+    f = image_features(_blocks(), get_segmenter("graph"), enc, batch_size=4)
+    f.validate()
+    assert f.table.shape[1] == 64 and f.seg.shape == (3, 96, 128)
