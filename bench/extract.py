@@ -43,12 +43,15 @@ def _art(stdout: str) -> Path:
     return Path(stdout.strip().splitlines()[-1].split(": ", 1)[1])
 
 
-def run_stages(work: Path, scene: Path, recon_sets: list[str]) -> dict:
+def run_stages(
+    work: Path, scene: Path, recon_sets: list[str], force: bool = False
+) -> dict:
     group = [f"--set=reconstruct.{s}" for s in recon_sets]
     wall, rss, out = _ptovs(work, *group, "reconstruct", "--data", str(scene))
     res: dict = {"reconstruct": {"wall_s": round(wall, 1), "peak_rss_mb": round(rss)}}
     for stage in STAGES:
-        wall, rss, out = _ptovs(work, *group, stage, "--data", str(scene))
+        extra = ["--force"] if force else []
+        wall, rss, out = _ptovs(work, *group, stage, "--data", str(scene), *extra)
         res[stage] = {
             "wall_s": round(wall, 1),
             "peak_rss_mb": round(rss),
@@ -164,6 +167,9 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=ROOT / "data")
     ap.add_argument("--work", type=Path, default=ROOT / "work" / "bench")
     ap.add_argument("--scale-iterations", type=int, default=200)
+    ap.add_argument(
+        "--force", action="store_true", help="recompute the three stages (timing)"
+    )
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     out_path = args.work / "bench_extract.json"
@@ -184,7 +190,7 @@ def main() -> None:
     if "bench" in args.parts:
         for seed in args.seeds:
             scene = _scene(args.data, seed)
-            res = run_stages(args.work / "default", scene, [])
+            res = run_stages(args.work / "default", scene, [], args.force)
             res.update(evaluate(res, scene))
             results[f"bench_s{seed}"] = res
             save()

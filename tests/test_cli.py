@@ -72,3 +72,15 @@ def test_module_entry_point_and_help():
         check=True,
     ).stdout
     assert "ptovs" in out
+
+
+def test_default_toml_matches_every_stage_default():
+    """configs/default.toml documents the defaults; it must not change any key."""
+    from ptovs.config import build_config, load_config
+    from ptovs.stage import all_stages
+
+    root = Path(__file__).resolve().parents[1]
+    cfg = load_config(root / "configs" / "default.toml")
+    for spec in all_stages():
+        built = build_config(spec.config_cls, cfg.get(spec.name, {}), spec.name)
+        assert built == spec.config_cls(), spec.name

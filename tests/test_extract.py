@@ -395,3 +395,30 @@ def test_uncertainty_hard_cases_are_finite():
     assert ok_bug.all() and ut_bug[0, 1] == pytest.approx(1.0)
     ut_ok, _, ok, _ = unc.raw_maps(_view({"orig": a, "self": b}), unc.Config())
     assert not ok[0, 1]
+
+
+def test_killed_extract_features_resumes(chain, monkeypatch):
+    """A run that dies mid-stage keeps its finished views; the rerun does the rest."""
+    import ptovs.stages.extract_features as ef
+
+    work, data, _ = chain
+    real = ef.image_features
+    calls = {"n": 0}
+
+    def dying(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] > 12:  # 5 images per view: dies in the third view
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(ef, "image_features", dying)
+    sets = ["extract", "--data", str(data), "--set", "extract-features.graph_sigma=0.7"]
+    res = CliRunner().invoke(main, ["--work-dir", str(work), *RECON, *sets])
+    assert res.exit_code != 0
+    parts = list((work / "tiny_s0" / "extract-features").glob("*.parts/*.h5"))
+    assert len(parts) == 2  # two finished views survived
+    calls["n"] = -1000
+    out = _cli(work, *sets)
+    assert "uncertainty" in out
+    n_views = len(load_scene(data).train_views())
+    assert calls["n"] == -1000 + 5 * (n_views - 2)  # only the missing views ran

@@ -51,8 +51,10 @@ class GraphSegmenter:
             gs = cv2.ximgproc.segmentation.createGraphSegmentation(
                 sigma=self.sigma, k=self.k[level], min_size=min_size
             )
-            labels = gs.processImage(img).astype(np.int32)
-            # ids are contiguous from 0 already; re-index defensively
-            _, inv = np.unique(labels, return_inverse=True)
-            out.append(Level(inv.reshape(h, w).astype(np.int32)))
+            labels = gs.processImage(img).astype(np.int32, copy=False)
+            n = int(labels.max()) + 1
+            if np.bincount(labels.ravel(), minlength=n).min() == 0:  # not contiguous
+                _, inv = np.unique(labels, return_inverse=True)
+                labels = inv.reshape(h, w).astype(np.int32)
+            out.append(Level(labels))
         return out

@@ -56,6 +56,23 @@ class Inputs:
     features: Artifact = upstream("extract-features")
 
 
+def tuple_ids(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unique rows of an int id matrix [P, M]: (first index of each, inverse [P]).
+
+    Folds one column at a time into a dense code (code·(max+1) + column, then
+    re-densified with a 1-D unique), so codes never overflow int64 and each step
+    is a fast 1-D sort, unlike np.unique(axis=0).
+    """
+    code = np.zeros(len(rows), np.int64)
+    for j in range(rows.shape[1]):
+        col = rows[:, j].astype(np.int64)
+        code = code * (int(col.max(initial=0)) + 1) + col
+        _, code = np.unique(code, return_inverse=True)
+        code = code.ravel()
+    _, first, inv = np.unique(code, return_index=True, return_inverse=True)
+    return first, inv.ravel()
+
+
 def _rows(f: SegmentFeatures, level: int, seg_invalid: str) -> np.ndarray:
     s = f.seg[level].astype(np.int64).ravel()
     if seg_invalid == "last_row" and len(f.table):
@@ -78,9 +95,9 @@ def level_maps(
     ok_t = (ro >= 0) & (rs >= 0)
     ut = np.zeros(ro.shape, np.float32)
     if ok_t.any():  # Eq. U_T per unique (orig row, self row) pair
-        pairs, inv = np.unique(
-            np.stack((ro[ok_t], rs[ok_t]), 1), axis=0, return_inverse=True
-        )
+        both = np.stack((ro[ok_t], rs[ok_t]), 1)
+        first, inv = tuple_ids(both)
+        pairs = both[first]
         a = fo.table[pairs[:, 0]].astype(np.float32)
         b = fs.table[pairs[:, 1]].astype(np.float32)
         sq = _sq_norms(a) + _sq_norms(b) - 2.0 * (a * b).sum(1)
@@ -91,7 +108,8 @@ def level_maps(
     rows = np.stack([_rows(feats[m], level, seg_invalid) for m in members], 1)  # [P, M]
     ok_a = (rows >= 0).all(1)
     if ok_a.any():  # Eq. U_A per unique tuple of member rows
-        tuples, inv = np.unique(rows[ok_a], axis=0, return_inverse=True)
+        first, inv = tuple_ids(rows[ok_a])
+        tuples = rows[ok_a][first]
         f = np.stack(
             [
                 feats[m].table[tuples[:, j]].astype(np.float32)
