@@ -20,7 +20,8 @@ setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q torch==2.13.0 torchvision==0.28.0  # CPU torch; never unpinned
+	$(BIN)/pip install -q torch==2.13.0        # the CPU wheel; never an unpinned torch
+	$(BIN)/pip install -q torchvision==0.28.0  # matches torch 2.13 (for the extras)
 	$(BIN)/pip install -q -e '.[dev,clip,sam]'  # the extras' tests run in CI
 	touch $@
 
