@@ -212,6 +212,7 @@ def main() -> None:
             args.work / "scale",
             scene,
             [f"iterations={args.scale_iterations}", "checkpoint_every=100"],
+            args.force,
         )
         results["scale_s0"] = res
         save()
