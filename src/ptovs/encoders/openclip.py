@@ -92,10 +92,8 @@ class OpenClipEncoder:
         self.tokenizer = oc.get_tokenizer(model)
         self.batch_size = int(batch_size)
         self.dim = int(self.net.visual.output_dim)
-        self.size = self.net.visual.image_size
-        self.size = (
-            self.size[0] if isinstance(self.size, (tuple, list)) else int(self.size)
-        )
+        size = self.net.visual.image_size  # int or (H, W)
+        self.size = int(size[0] if isinstance(size, (tuple, list)) else size)
         self._mean = torch.tensor(CLIP_MEAN, device=self.device).view(1, 3, 1, 1)
         self._std = torch.tensor(CLIP_STD, device=self.device).view(1, 3, 1, 1)
 

@@ -51,6 +51,14 @@ def pairwise_l1(emb: np.ndarray) -> np.ndarray:
     return np.abs(e[:, None, :] - e[None, :, :]).sum(-1)
 
 
+def min_pairwise_l1(emb: np.ndarray) -> float | None:
+    """Smallest Manhattan distance between two rows (None for fewer than 2)."""
+    if len(emb) < 2:
+        return None
+    d = pairwise_l1(emb)
+    return float(d[~np.eye(len(d), dtype=bool)].min())
+
+
 def _greedy(dist: np.ndarray, order: np.ndarray, eps: float, k: int) -> list[int]:
     chosen: list[int] = []
     for j in order:
@@ -121,8 +129,7 @@ def select_targets(
             break
         log.info("target selection: no %d targets at ε_d = %.4g, lowering", want, eps)
     chosen = [names[cand[i]] for i in best]
-    sub = dist[np.ix_(best, best)]
-    min_d = float(sub[~np.eye(len(best), dtype=bool)].min()) if len(best) > 1 else None
+    min_d = min_pairwise_l1(np.asarray(embeddings)[cand[best]])
     report.update(
         eps_q=eps_q,
         candidates=int(cand.size),

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from ptovs.artifacts import Artifact, Checkpoint, json_dataset
-from ptovs.field.appearance import paper_targets, select_targets
+from ptovs.field.appearance import min_pairwise_l1, paper_targets, select_targets
 from ptovs.field.render import WildField
 from ptovs.raster import VERSION as RASTER_VERSION
 from ptovs.raster import Camera
@@ -156,11 +156,9 @@ def run(
             else:
                 report["mode"] = "list"
                 report["chosen"] = ids
+                emb = field.embeddings_of(ids).numpy()
+                report["min_pairwise_l1"] = min_pairwise_l1(emb)
             targets = list(ids)
-            if len(targets) > 1:
-                e = field.embeddings_of(targets).numpy().astype(np.float64)
-                d = np.abs(e[:, None] - e[None]).sum(-1)
-                report["min_pairwise_l1"] = float(d[~np.eye(len(e), dtype=bool)].min())
         slots = [f"nov{i + 1}" for i in range(len(targets))] + ["self"]
         log.info("%s: appearance slots %s <- targets %s", scene.name, slots, targets)
         if ckpt is not None:
