@@ -33,3 +33,35 @@ def scene_copy(tiny_scene_dir: Path, tmp_path: Path) -> Path:
     if labels.is_dir():
         shutil.copytree(labels, dst / "label" / tiny_scene_dir.name)
     return dst / tiny_scene_dir.name
+
+
+# The tiny chain up to uncertainty, built once per session and copied by the
+# modules that need it (each gets its own work dir, so their extra artifacts
+# never meet). Short reconstruct, everything else default.
+RECON = ["--set=reconstruct.iterations=300", "--set=reconstruct.mask_warmup=100"]
+
+
+def run_cli(work: Path, *args: str) -> str:
+    """`ptovs --work-dir WORK <RECON sets> ARGS` in-process; asserts success."""
+    from click.testing import CliRunner
+
+    from ptovs.cli import main
+
+    res = CliRunner().invoke(main, ["--work-dir", str(work), *RECON, *args])
+    assert res.exit_code == 0, res.output + repr(res.exception)
+    return res.output
+
+
+@pytest.fixture(scope="session")
+def extracted_work(tmp_path_factory: pytest.TempPathFactory, tiny_scene_dir: Path):
+    """(work dir, `ptovs extract` output) with reconstruct and extract done on tiny."""
+    work = tmp_path_factory.mktemp("extracted")
+    run_cli(work, "reconstruct", "--data", str(tiny_scene_dir))
+    out = run_cli(work, "extract", "--data", str(tiny_scene_dir))
+    return work, out
+
+
+def copy_work(src: Path, dst: Path) -> Path:
+    """A private copy of a work dir (artifacts, no locks)."""
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("*.lock"))
+    return dst

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from conftest import RECON, copy_work
 from ptovs.artifacts import Artifact, read_json_dataset
 from ptovs.cli import main
 from ptovs.features import SegmentFeatures, read_langsplat, view_apps, write_langsplat
@@ -16,8 +17,6 @@ from ptovs.field.losses import auroc
 from ptovs.scene import load_scene
 from ptovs.segment import NO_SEGMENT, Level
 from ptovs.stages import uncertainty as unc
-
-RECON = ["--set=reconstruct.iterations=300", "--set=reconstruct.mask_warmup=100"]
 
 
 def _cli(work: Path, *args: str) -> str:
@@ -28,11 +27,10 @@ def _cli(work: Path, *args: str) -> str:
 
 
 @pytest.fixture(scope="module")
-def chain(tmp_path_factory, tiny_scene_dir):
+def chain(tmp_path_factory, tiny_scene_dir, extracted_work):
     """tiny: reconstruct (short) then `ptovs extract`; returns (work, data, output)."""
-    work = tmp_path_factory.mktemp("work")
-    _cli(work, "reconstruct", "--data", str(tiny_scene_dir))
-    out = _cli(work, "extract", "--data", str(tiny_scene_dir))
+    src, out = extracted_work
+    work = copy_work(src, tmp_path_factory.mktemp("extract") / "work")
     return work, tiny_scene_dir, out
 
 

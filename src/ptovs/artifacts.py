@@ -31,7 +31,7 @@ import os
 import shutil
 import subprocess
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -256,6 +256,16 @@ class Artifact:
     def __getitem__(self, name: str) -> dict[str, np.ndarray]:
         group = self._h5["views"][_safe_name(name)]
         return {k: group[k][()] for k in group}
+
+    def read(self, name: str, keys: Iterable[str]) -> dict[str, np.ndarray]:
+        """Only these datasets of a view (KeyError naming the view if one is absent)."""
+        group = self._h5["views"][_safe_name(name)]
+        out = {}
+        for k in keys:
+            if k not in group:
+                raise KeyError(f"{self.path.name}: view {name} has no dataset {k!r}")
+            out[k] = group[k][()]
+        return out
 
     def root(self) -> dict[str, np.ndarray]:
         if "root" not in self._h5:

@@ -268,21 +268,84 @@ def extract(
     resumable on its own: a second `ptovs extract` does nothing, and a killed one
     resumes in the stage (and at the view) where it stopped. Needs reconstruct.
     """
-    import time
-
-    from ptovs.stage import Chain, execute
+    from ptovs.stage import Chain
 
     ref = resolve_scene(obj, scene_name, data)
     chain = Chain(obj, ref, _split_sets(sets, EXTRACT_STAGES))
-    for stage in EXTRACT_STAGES:
+    _run_stages(chain, EXTRACT_STAGES, set(EXTRACT_STAGES) if force else set())
+
+
+def _run_stages(chain, stages, force: set[str]) -> None:
+    """Run stages in order (cached ones return at once); one line per stage."""
+    import time
+
+    from ptovs.stage import execute
+
+    for stage in stages:
+        redo = stage in force or chain.ctx.force
         was = chain.state(stage)[0]
         t0 = time.perf_counter()
-        art = execute(chain, stage, force=force or obj.force)
-        what = "cached" if was == "done" and not (force or obj.force) else "done"
+        art = execute(chain, stage, force=redo)
+        what = "cached" if was == "done" and not redo else "done"
         click.echo(
             f"{stage:<20} {what:<7} {time.perf_counter() - t0:7.1f} s  {art.path}"
         )
         art.close()
+
+
+TRAIN_STAGES = ("train-ae", "train-male")
+ALL_STAGES = (
+    "reconstruct",
+    "render-appearances",
+    "extract-features",
+    "uncertainty",
+    *TRAIN_STAGES,
+)
+
+
+@main.command("train")
+@scene_options
+@click.option(
+    "--variant",
+    type=click.Choice(["male", "langsplat", "langsplat-wild"]),
+    default="male",
+    show_default=True,
+    help="male: the paper's MALE-GS. langsplat: LangSplat's recipe (one "
+    "appearance, originals only, no uncertainty) on plain-3DGS geometry. "
+    "langsplat-wild: that recipe on the in-the-wild geometry.",
+)
+@click.option(
+    "--set",
+    "sets",
+    multiple=True,
+    metavar="STAGE.KEY=VALUE",
+    help="Override a config value of any stage of the chain (repeatable), e.g. "
+    "train-male.iterations=30000.",
+)
+@click.option("--force", is_flag=True, help="Retrain train-ae and train-male.")
+@click.pass_obj
+def train(
+    obj: RunContext,
+    scene_name: str | None,
+    data: Path | None,
+    variant: str,
+    sets: tuple[str, ...],
+    force: bool,
+) -> None:
+    """Train the language field of one scene: train-ae, then train-male.
+
+    Each stage is cached and resumable on its own: a second `ptovs train` does
+    nothing, and a killed one resumes from its last checkpoint. Any stage the
+    variant needs that has not run yet (reconstruct, extract-features, ...) runs
+    first, so `--variant langsplat` builds its plain-3DGS geometry itself.
+    """
+    from ptovs.stage import Chain
+    from ptovs.variants import variant_sets
+
+    ref = resolve_scene(obj, scene_name, data)
+    chain = Chain(obj, ref, variant_sets(variant, _split_sets(sets, ALL_STAGES)))
+    stages = chain.closure("train-male")
+    _run_stages(chain, stages, set(TRAIN_STAGES) if force else set())
 
 
 @main.command("export-features")

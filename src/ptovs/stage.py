@@ -70,9 +70,14 @@ class SceneConfig:
     """Non-zero lens distortion: refuse (undistort first) or ignore (authors' code)."""
 
 
-def upstream(stage: str) -> Any:
-    """Declare an `Inputs` field filled with the named stage's artifact."""
-    return field(metadata={"stage": stage})
+def upstream(stage: str, *, when: Callable[[Any], bool] | None = None) -> Any:
+    """Declare an `Inputs` field filled with the named stage's artifact.
+
+    `when(config)` makes the input conditional: where it returns False the stage
+    neither needs nor is keyed by that upstream, and the field is None (e.g.
+    train-ae without uncertainty weighting does not depend on `uncertainty`).
+    """
+    return field(metadata={"stage": stage, "when": when})
 
 
 def scene_input() -> Any:
@@ -94,9 +99,17 @@ class StageSpec:
 
     @property
     def inputs(self) -> dict[str, str]:
-        """{Inputs field: upstream stage name}."""
+        """{Inputs field: upstream stage name}, conditional inputs included."""
         return {
             f.name: f.metadata["stage"] for f in dataclasses.fields(self.inputs_cls)
+        }
+
+    def needed_inputs(self, config: Any) -> dict[str, str]:
+        """{Inputs field: upstream stage name} that this config depends on."""
+        return {
+            f.name: f.metadata["stage"]
+            for f in dataclasses.fields(self.inputs_cls)
+            if f.metadata.get("when") is None or f.metadata["when"](config)
         }
 
 
@@ -254,7 +267,8 @@ class Chain:
 
     def upstream_keys(self, stage: str) -> dict[str, str]:
         spec = get_stage(stage)
-        return {name: self.key(up) for name, up in spec.inputs.items()}
+        needed = spec.needed_inputs(self.config(stage))
+        return {name: self.key(up) for name, up in needed.items()}
 
     def key(self, stage: str) -> str:
         if stage == SCENE:
@@ -272,8 +286,9 @@ class Chain:
     def inputs(self, stage: str) -> Any:
         """The stage's `Inputs`, with every upstream artifact verified and opened."""
         spec = get_stage(stage)
-        values = {}
-        for name, up in spec.inputs.items():
+        needed = spec.needed_inputs(self.config(stage))
+        values: dict[str, Any] = dict.fromkeys(spec.inputs)  # None: not needed
+        for name, up in needed.items():
             if up == SCENE:
                 values[name] = self.scene.load()
                 continue
@@ -286,6 +301,22 @@ class Chain:
                 )
             values[name] = art
         return spec.inputs_cls(**values)
+
+    def closure(self, stage: str) -> list[str]:
+        """`stage` and every stage it needs under this chain's configs, in order."""
+        need: set[str] = set()
+
+        def visit(name: str) -> None:
+            if name == SCENE or name in need:
+                return
+            need.add(name)
+            spec = get_stage(name)
+            for up in spec.needed_inputs(self.config(name)).values():
+                visit(up)
+
+        visit(stage)
+        order = {name: i for i, name in enumerate(PIPELINE)}
+        return sorted(need, key=lambda s: (order.get(s, len(order)), s))
 
     def inputs_of(self, stage: str) -> Artifact:
         """The verified artifact of `stage` for this chain, or a MissingInputError."""

@@ -48,6 +48,7 @@ __all__ = [
     "RenderOutput",
     "available_backends",
     "blend_weights",
+    "csr_matmul",
     "eval_sh",
     "render",
 ]
@@ -398,6 +399,38 @@ class BlendWeights:
         mat, mat_t = _csr_pair(crow, gid[order], weights[order], n_pix, n)
         return cls(mat, mat_t, height, width)
 
+    @classmethod
+    def from_csr(
+        cls, w: tuple, wt: tuple, height: int, width: int, n: int
+    ) -> BlendWeights:
+        """Wrap CSR triples (indptr, indices, values) of W and W^T, e.g. as cached."""
+        n_pix = height * width
+        mat, mat_t = sparse_csr(*w, (n_pix, n)), sparse_csr(*wt, (n, n_pix))
+        csr = (tuple(w), tuple(wt)) if w[0].dtype == torch.int32 else None
+        return cls(mat, mat_t, height, width, csr)
+
+    def csr(self) -> tuple[tuple[Tensor, ...], tuple[Tensor, ...]]:
+        """(W, W^T) as CSR triples (indptr, indices, values), e.g. to cache them."""
+        if self._csr is not None:
+            return tuple(self._csr[0]), tuple(self._csr[1])
+        return tuple(
+            (m.crow_indices(), m.col_indices(), m.values()) for m in (self.W, self.WT)
+        )
+
+    @property
+    def nnz(self) -> int:
+        return int(self.W.values().numel())
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by both directions (indptr, indices and values)."""
+        return sum(t.numel() * t.element_size() for pair in self.csr() for t in pair)
+
+    def seen(self) -> Tensor:
+        """[N] bool: the Gaussian contributes to at least one pixel of this view."""
+        indptr = self.csr()[1][0]
+        return torch.diff(indptr.long()) > 0
+
     @property
     def n_gaussians(self) -> int:
         return self.W.shape[1]
@@ -426,6 +459,29 @@ class BlendWeights:
                 return out.reshape(self.height, self.width, f.shape[1])
         out = _SpMM.apply(f.contiguous(), self.W, self.WT)
         return out.reshape(self.height, self.width, f.shape[1])
+
+
+def csr_matmul(csr: tuple[Tensor, Tensor, Tensor], n_cols: int, x: Tensor) -> Tensor:
+    """A CSR matrix (indptr, indices, values) [rows, n_cols] times x [n_cols, D].
+
+    The compiled OpenMP kernel for int32 float32 CPU triples, else torch.sparse.mm.
+    No autograd: frozen-geometry training calls it for W·f and for Wᵀ·g.
+    """
+    indptr, indices, values = csr
+    if x.shape[0] != n_cols:
+        raise ValueError(f"x has {x.shape[0]} rows, the matrix {n_cols} columns")
+    if (
+        indptr.dtype == torch.int32
+        and indices.dtype == torch.int32
+        and values.dtype == torch.float32
+        and x.dtype == torch.float32
+        and x.device.type == "cpu"
+    ):
+        cpu = _cpu_module()
+        if cpu is not None:
+            return cpu.spmm(indptr, indices, values, x.contiguous())
+    mat = sparse_csr(indptr, indices, values.to(x.dtype), (indptr.numel() - 1, n_cols))
+    return torch.sparse.mm(mat, x.contiguous())
 
 
 def blend_weights(

@@ -12,4 +12,6 @@ STAGE_MODULES: dict[str, str] = {
     "render-appearances": "ptovs.stages.render_appearances",
     "extract-features": "ptovs.stages.extract_features",
     "uncertainty": "ptovs.stages.uncertainty",
+    "train-ae": "ptovs.stages.train_ae",
+    "train-male": "ptovs.stages.train_male",
 }

@@ -62,7 +62,8 @@ class Config:
     batch_size: int = 64
     crop_size: int = 224
     images: Literal["all", "orig"] = "all"
-    """"all": the original and every render; "orig": originals only."""
+    """"all": the original and every render; "orig": originals only (then the
+    stage does not depend on reconstruct: LangSplat's recipe on any geometry)."""
     import_dir: str = ""
     """A LangSplat feature folder to read instead of segmenting and encoding."""
 
@@ -70,7 +71,10 @@ class Config:
 @dataclass(frozen=True)
 class Inputs:
     scene: Any = scene_input()
-    renders: Artifact = upstream("render-appearances")
+    renders: Artifact | None = upstream(
+        "render-appearances", when=lambda c: c.images == "all"
+    )
+    """Only for images = "all": originals alone depend on the photos, not the field."""
 
 
 def build_segmenter(config: Config) -> Segmenter:
@@ -140,7 +144,11 @@ def run(
     """Yield each train view's features for the original and every render."""
     scene = inputs.scene
     levels = check_levels(config.levels)
-    slots = read_json_dataset(inputs.renders.root()["slots_json"])["slots"]
+    slots = (
+        read_json_dataset(inputs.renders.root()["slots_json"])["slots"]
+        if inputs.renders is not None
+        else []
+    )
     apps = ["orig"] + (slots if config.images == "all" else [])
     novel = [s for s in slots if s != "self"]
     importing = bool(config.import_dir)

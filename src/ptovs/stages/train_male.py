@@ -1,0 +1,267 @@
+"""Train the multi-appearance language Gaussians on frozen geometry (PAPER_SPEC.md §7).
+
+Reads reconstruct (the Gaussians, frozen), train-ae (3-d codes of every table),
+extract-features (each slot's segment maps) and uncertainty (unless `use_ut` and
+`use_ua` are both off). Per level (all the features hold; s, m, l by default) each
+Gaussian carries N × 3 codes: the original slot and the N − 1 novel appearances
+(`appearances = "orig"`: the original only, LangSplat's recipe). All levels train
+together in one sparse product; the losses are independent per level, so this is
+exactly one model per level (see `ptovs.field.language`).
+
+Loss `loss_variant = "paper"` (default): (1 − U_A)(1 − U_T)-weighted L1 over every
+slot; `"code"`: the authors' code (U_A on the original only, 3:1 weighting). Pixels
+a slot has no segment at are masked out. Adam (lr 0.0025, eps 1e-15), one view per
+iteration from a seeded shuffled stack. Codes start from each Gaussian's weighted
+mean target (`init = "data"`); `init = "zero"` is the authors' start.
+
+Rendering: `renderer = "sparse"` (default) builds each view's blend weights W_v
+once (kept in RAM up to `cache_mb`, spilled to memory-mapped files beyond it), so a
+step is W_v · normalize(f) and W_vᵀ · g; `"raster"` rasterises every step.
+
+Stopping: up to `iterations` (30k, the paper's); with `stop = "plateau"` (default)
+training ends once the epoch-mean loss (one pass over all views) has stayed above
+(1 − `stop_rel`) × its best for `stop_patience` epochs. Checkpoints every
+`checkpoint_every` iterations; a killed run resumes there.
+
+Writes root datasets: `codes` [P_seen, L, N·3] float16 (normalised, as rendered)
+for the Gaussians some train view sees, `seen_bits` (np.packbits of the [P] mask),
+`meta_json` (levels, slots, P), `metrics_json` (iterations, time, final loss per
+level, bytes per Gaussian) and `log_epoch_loss`.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from ptovs.artifacts import Artifact, Checkpoint, json_dataset, read_json_dataset
+from ptovs.field.language import (
+    CODE_DIM,
+    MaleConfig,
+    ViewStore,
+    evaluate_loss,
+    normalize_chunks,
+    prepare_view,
+    train_male,
+)
+from ptovs.field.render import WildField
+from ptovs.raster import Camera, Gaussians, blend_weights
+from ptovs.stage import scene_input, stage_command, upstream
+
+log = logging.getLogger(__name__)
+
+NAME = "train-male"
+VERSION = 1
+
+
+def _needs_uncertainty(c: Config) -> bool:
+    return c.use_ut or c.use_ua
+
+
+@dataclass(frozen=True)
+class Config:
+    appearances: Literal["all", "orig"] = "all"
+    """Slots trained: the original and every novel render ("all"), or the original
+    only ("orig": LangSplat's single-appearance field)."""
+    loss_variant: Literal["paper", "code"] = "paper"
+    use_ut: bool = True
+    """Weight by (1 − U_T); off = factor 1 (Table 3 ablations)."""
+    use_ua: bool = True
+    """Weight by (1 − U_A); off = factor 1."""
+    levels: tuple[str, ...] = ()
+    """Levels to train (empty: every level extract-features stored)."""
+    init: Literal["data", "zero"] = "data"
+    """Start codes: "data" = each Gaussian's weighted mean target code (one sparse
+    pass); "zero" = the authors' zero init, whose first gradient through
+    x/(‖x‖+1e-9) is ~1e9 and stalls Adam for thousands of steps (docs/design.md)."""
+    lr: float = 0.0025
+    adam_eps: float = 1e-15
+    iterations: int = 30000
+    """The paper's count; the upper bound when `stop = "plateau"`."""
+    stop: Literal["plateau", "fixed"] = "plateau"
+    stop_rel: float = 1e-3
+    """Plateau: an epoch counts as progress if its mean loss beats the best by this."""
+    stop_patience: int = 3
+    """Plateau: epochs without progress before stopping."""
+    renderer: Literal["sparse", "raster"] = "sparse"
+    cache_mb: int = 4096
+    """RAM for the per-view blend weights; the rest is memory-mapped from disk."""
+    backend: str = "auto"
+    seed: int = 0
+    checkpoint_every: int = 1000
+
+
+@dataclass(frozen=True)
+class Inputs:
+    scene: Any = scene_input()
+    reconstruct: Artifact = upstream("reconstruct")
+    ae: Artifact = upstream("train-ae")
+    features: Artifact = upstream("extract-features")
+    uncertainty: Artifact | None = upstream("uncertainty", when=_needs_uncertainty)
+
+
+def resolve_slots(
+    meta: dict, ae_meta: dict, config: Config
+) -> tuple[list[str], list[str], list[int]]:
+    """(levels trained, slots trained, their indices in the feature levels)."""
+    have = list(meta["levels"])
+    levels = list(config.levels) or have
+    missing = [lv for lv in levels if lv not in have]
+    if missing:
+        raise ValueError(
+            f"train-male: levels {missing} are not in extract-features (has {have})"
+        )
+    apps = [a for a in meta["apps"] if a != "self"]
+    if config.appearances == "orig":
+        apps = ["orig"]
+    absent = [a for a in apps if a not in ae_meta["apps"]]
+    if absent or "orig" not in apps:
+        raise ValueError(
+            f"train-male: train-ae has no codes for {absent or ['orig']} "
+            f"(has {ae_meta['apps']})"
+        )
+    return levels, apps, [have.index(lv) for lv in levels]
+
+
+def prepare_views(
+    inputs: Inputs,
+    views: list,
+    gaussians: Gaussians,
+    apps: list[str],
+    level_idx: list[int],
+    config: Config,
+    store: ViewStore,
+) -> torch.Tensor:
+    """Blend weights and targets of every view into `store`; returns seen [P] bool."""
+    seen = torch.zeros(len(gaussians), dtype=torch.bool)
+    for view in tqdm(
+        views, desc="train-male views", unit="view", leave=False, disable=None
+    ):
+        name = view.name
+        seg = inputs.features.read(name, [f"seg_{a}" for a in apps])
+        codes = inputs.ae.read(name, [f"code_{a}" for a in apps])
+        u_t = u_a = None
+        if inputs.uncertainty is not None:
+            u = inputs.uncertainty.read(name, ("u_t", "u_a"))
+            u_t = u["u_t"] if config.use_ut else None
+            u_a = u["u_a"] if config.use_ua else None
+        segs = [seg[f"seg_{a}"][level_idx] for a in apps]
+        if segs[0].shape[1:] != (view.height, view.width):
+            raise ValueError(
+                f"train-male: features of {name} are {segs[0].shape[2]}x"
+                f"{segs[0].shape[1]}, the view is {view.width}x{view.height}; "
+                "rerun extract-features"
+            )
+        bw = blend_weights(gaussians, Camera.from_view(view), backend=config.backend)
+        seen |= bw.seen()
+        store.add(
+            prepare_view(
+                bw,
+                segs,
+                [codes[f"code_{a}"] for a in apps],
+                u_t,
+                u_a,
+                config.loss_variant,
+            )
+        )
+    return seen
+
+
+def run(inputs: Inputs, config: Config, ckpt: Checkpoint | None = None) -> dict:
+    """Train the codes; return the root datasets."""
+    scene = inputs.scene
+    meta = read_json_dataset(inputs.features.root()["levels_json"])
+    ae_meta = read_json_dataset(inputs.ae.root()["meta_json"])
+    levels, apps, level_idx = resolve_slots(meta, ae_meta, config)
+    views = [v for v in scene.train_views() if v.name in inputs.features]
+    if not views:
+        raise ValueError("train-male: extract-features holds no train view")
+    cams = [Camera.from_view(v) for v in views]
+    g = WildField.from_artifact(inputs.reconstruct).gaussians
+    n_ch = len(levels) * len(apps) * CODE_DIM
+    log.info(
+        "train-male: %d views, %d Gaussians, levels %s, slots %s (%d channels)",
+        len(views), len(g), levels, apps, n_ch,
+    )  # fmt: skip
+    male = MaleConfig(
+        **{
+            k: v
+            for k, v in asdict(config).items()
+            if k in MaleConfig.__dataclass_fields__
+        }
+    )
+    with tempfile.TemporaryDirectory(prefix="ptovs-male-") as tmp:
+        scratch = (ckpt.folder if ckpt is not None else Path(tmp)) / "views"
+        store = ViewStore(int(config.cache_mb) << 20, scratch)
+        seen = prepare_views(inputs, views, g, apps, level_idx, config, store)
+        log.info(
+            "train-male: view data %.0f MB in RAM, %.0f MB memory-mapped",
+            store.ram_bytes / 2**20,
+            store.disk_bytes / 2**20,
+        )
+        f, metrics, hist = train_male(
+            store, n_ch, male, g, cams,
+            load=(ckpt.load if ckpt else lambda: None),
+            save=(ckpt.save if ckpt else lambda s: None),
+        )  # fmt: skip
+        final, per_level = evaluate_loss(f, store, config.loss_variant)
+        del store
+    codes = normalize_chunks(f).reshape(len(g), len(levels), len(apps) * CODE_DIM)
+    if not torch.isfinite(codes).all():
+        raise FloatingPointError("train-male: codes are not finite")
+    stored = codes[seen].numpy().astype(np.float16)
+    bits = np.packbits(seen.numpy())
+    per_gaussian = stored.nbytes / max(int(seen.sum()), 1)
+    metrics.update(
+        final_loss=final,
+        final_loss_per_level=dict(zip(levels, per_level, strict=True)),
+        gaussians=len(g),
+        gaussians_seen=int(seen.sum()),
+        bytes_per_gaussian=round(per_gaussian, 3),
+        seen_mask_bytes=int(bits.nbytes),
+        views=len(views),
+    )
+    log.info(
+        "train-male: %d iterations (%.1f epochs, %s) in %.1f s; final loss %.5f",
+        metrics["iterations"], metrics["epochs"], metrics["stop"],
+        metrics["train_seconds"], final,
+    )  # fmt: skip
+    return {
+        "codes": stored,
+        "seen_bits": bits,
+        "meta_json": json_dataset(
+            {
+                "levels": levels,
+                "apps": apps,
+                "gaussians": len(g),
+                "code_dim": CODE_DIM,
+                "layout": "codes[k, level, slot*3 + xyz] for the k-th seen Gaussian",
+            }
+        ),
+        "metrics_json": json_dataset(metrics),
+        "log_epoch_loss": np.asarray(hist["epoch_loss"], np.float64),
+        "log_epoch_seconds": np.asarray(hist["epoch_seconds"], np.float64),
+    }
+
+
+def load_codes(art: Artifact) -> tuple[torch.Tensor, dict]:
+    """Codes of every Gaussian [P, L, N, 3] float32 (zeros where unseen), and meta."""
+    root = art.root()
+    meta = read_json_dataset(root["meta_json"])
+    n = int(meta["gaussians"])
+    seen = np.unpackbits(root["seen_bits"], count=n).astype(bool)
+    codes = np.zeros((n, len(meta["levels"]), len(meta["apps"]), CODE_DIM), np.float32)
+    codes[seen] = root["codes"].astype(np.float32).reshape(-1, *codes.shape[1:])
+    return torch.from_numpy(codes), meta
+
+
+command = stage_command(NAME, VERSION, Config, Inputs, run, kind="single")
+
+__all__ = ["Config", "Inputs", "command", "load_codes", "resolve_slots", "run"]

@@ -1,0 +1,478 @@
+"""train-ae and train-male (issue: train): the autoencoder, MALE-GS, the baselines."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from conftest import RECON, copy_work, run_cli
+from ptovs.artifacts import Artifact, read_json_dataset
+from ptovs.cli import main
+from ptovs.field import language as lang
+from ptovs.nets.autoencoder import LanguageAE
+from ptovs.raster import blend_weights, render
+from ptovs.stages import train_ae as tae
+from ptovs.stages.train_male import load_codes
+from test_raster import random_scene
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory, tiny_scene_dir, extracted_work):
+    """tiny: the extracted chain, then `ptovs train` (default variant)."""
+    work = copy_work(extracted_work[0], tmp_path_factory.mktemp("train") / "work")
+    out = run_cli(work, "train", "--data", str(tiny_scene_dir))
+    return work, tiny_scene_dir, out
+
+
+def _art(work: Path, stage: str) -> Artifact:
+    (path,) = sorted((work / "tiny_s0" / stage).glob("*.h5"))
+    return Artifact(path)
+
+
+def _path_of(out: str, stage: str) -> Path:
+    line = next(x for x in out.splitlines() if x.startswith(stage + " "))
+    return Path(line.split()[-1])
+
+
+# ------------------------------------------------------------------ train-ae --
+
+
+def test_train_runs_both_stages_then_caches(trained):
+    work, data, out = trained
+    assert "train-ae             done" in out and "train-male           done" in out
+    again = run_cli(work, "train", "--data", str(data))
+    assert again.count("cached") == 6, again  # the whole chain, nothing rerun
+
+
+def test_ae_codes_decode_close_to_heldout_features(trained):
+    work, _, _ = trained
+    with _art(work, "train-ae") as ae_art, _art(work, "extract-features") as feats:
+        metrics = read_json_dataset(ae_art.root()["metrics_json"])
+        assert metrics["heldout"] > 0 and metrics["heldout_cos"] >= 0.85
+        model = tae.load_autoencoder(ae_art)
+        cos = []
+        for name in feats.names():
+            x = torch.from_numpy(feats[name]["feat_orig"].astype(np.float32))
+            with torch.no_grad():
+                h = model.encode(x)
+                cos.append(torch.nn.functional.cosine_similarity(model.decode(h), x))
+            stored = ae_art[name]
+            # every table is encoded (renders too), to unit codes equal to encode(x)
+            assert {"code_orig", "code_nov1", "code_self"} <= set(stored)
+            np.testing.assert_allclose(stored["code_orig"], h.numpy(), atol=1e-5)
+            np.testing.assert_allclose(
+                np.linalg.norm(stored["code_nov1"], axis=1), 1.0, atol=1e-5
+            )
+        assert float(torch.cat(cos).mean()) >= 0.85
+
+
+def test_segment_uncertainty_and_tau_exclusion_exactly():
+    # two levels over a 2x3 image; rows 0-1 on level 0, rows 2-3 on level 1
+    seg = np.array(
+        [[[0, 0, 1], [1, 1, -1]], [[2, 3, 3], [3, 3, 3]]], np.int16
+    )  # row 0: px (0,0),(0,1); row 1: (0,2),(1,0),(1,1); row 2: (0,0); row 3: rest
+    u = np.array([[0.0, 0.2, 1.0], [0.95, 0.9, 0.5]], np.float32)
+    ubar = tae.segment_uncertainty(seg, 5, u)
+    want = [0.1, (1.0 + 0.95 + 0.9) / 3, 0.0, (0.2 + 1.0 + 0.95 + 0.9 + 0.5) / 5, 0.0]
+    np.testing.assert_allclose(ubar, want, rtol=1e-6)  # row 4 covers nothing: 0
+    keep, p = tae.sample_weights(seg, 5, u, tae.Config(tau_u=0.9))
+    assert keep.tolist() == [True, False, True, True, True]  # 0.95 > 0.9 only
+    np.testing.assert_allclose(p, 1.0 - np.asarray(want), rtol=1e-6)
+    keep, _ = tae.sample_weights(seg, 5, u, tae.Config(tau_u=1.0))
+    assert keep.all()  # the code's behaviour: nothing excluded
+    _, p = tae.sample_weights(seg, 5, u, tae.Config(weighting="none"))
+    assert (p == 1).all()
+
+
+def test_collected_training_set_matches_a_direct_count(trained, tmp_path):
+    work, _, _ = trained
+    with _art(work, "extract-features") as feats, _art(work, "uncertainty") as unc:
+        cfg = tae.Config(tau_u=0.5)  # low enough to exclude some segments on tiny
+        s = tae.collect_samples(feats, unc, cfg, tmp_path)
+        rows, weights = [], []
+        for name in feats.names():
+            seg, table = feats[name]["seg_orig"], feats[name]["feat_orig"]
+            u = unc[name]["u_t"].astype(np.float64)
+            for r in range(len(table)):
+                px = (seg == r).any(0)
+                ub = u[px].mean()  # each row lives on one level only
+                if ub <= 0.5:
+                    rows.append(table[r])
+                    weights.append(1.0 - ub)
+        assert 0 < s.stats["excluded_tau_u"] < s.stats["segments"]
+        assert len(s.train) + len(s.heldout) == len(rows)
+        np.testing.assert_array_equal(np.asarray(s.rows), np.asarray(rows))
+        np.testing.assert_allclose(s.weights, weights, rtol=1e-5)
+        assert not set(s.train) & set(s.heldout)
+
+
+def test_ae_objective_variants():
+    torch.manual_seed(0)
+    model = LanguageAE(16, (8, 4, 3), (6, 16))
+    x = torch.nn.functional.normalize(torch.randn(10, 16), dim=1)
+    one = torch.ones(10)
+    base = tae.objective(model, x, one, tae.Config(weighting="none"))
+    for w in ("input_and_target", "loss_only"):  # p = 1: all forms agree
+        assert torch.allclose(
+            tae.objective(model, x, one, tae.Config(weighting=w)), base
+        )
+    p = torch.linspace(0.1, 1.0, 10)
+    a = tae.objective(model, x, p, tae.Config(weighting="input_and_target"))
+    b = tae.objective(model, x, p, tae.Config(weighting="loss_only"))
+    assert torch.isfinite(a) and torch.isfinite(b) and not torch.allclose(a, b)
+    c = tae.objective(model, x, p, tae.Config(cos_axis="batch"))
+    assert torch.isfinite(c) and not torch.allclose(a, c)
+    back = LanguageAE.from_state(model.state_dict())
+    model.eval()
+    assert torch.allclose(back(x), model(x))
+
+
+# --------------------------------------------------------------- train-male --
+
+
+def _toy_view(n=40, w=24, h=18, seed=0, levels=2, apps=3, u_t=None, u_a=None):
+    """Random Gaussians, a camera, and segment maps / codes for every slot."""
+    g, cam, _ = random_scene(n, w, h, seed=seed)
+    rng = np.random.default_rng(seed)
+    segs, codes = [], []
+    for _ in range(apps):
+        k = 5
+        seg = np.stack([rng.integers(0, k, (h, w)) + lv * k for lv in range(levels)])
+        seg[:, :2, :3] = -1  # a corner without segments
+        c = rng.normal(size=(k * levels, 3)).astype(np.float32)
+        segs.append(seg.astype(np.int16))
+        codes.append(c / np.linalg.norm(c, axis=1, keepdims=True))
+    bw = blend_weights(g, cam)
+    return g, cam, bw, segs, codes, u_t, u_a
+
+
+def _dense_reference_loss(f64, bw, segs, codes, u_t, u_a, variant):
+    """The loss of PAPER_SPEC §7 on dense float64 images (no compaction)."""
+    n_lv, h, w = segs[0].shape
+    hw = h * w
+    wmat = bw.W.to_dense().double()  # [HW, P]
+    fn = lang.normalize_chunks(f64)
+    r = (wmat @ fn).reshape(hw, n_lv, len(segs), 3)
+    ut = (
+        torch.zeros(hw, dtype=torch.float64)
+        if u_t is None
+        else torch.from_numpy(u_t.ravel()).double()
+    )
+    ua = (
+        torch.zeros(hw, dtype=torch.float64)
+        if u_a is None
+        else torch.from_numpy(u_a.ravel()).double()
+    )
+    total = 0.0
+    for a, (seg, code) in enumerate(zip(segs, codes, strict=True)):
+        for lv in range(n_lv):
+            s = torch.from_numpy(seg[lv].ravel().astype(np.int64))
+            valid = (s >= 0).double()
+            gt = torch.from_numpy(code).double()[s.clamp_min(0)] * valid[:, None]
+            if variant == "paper" or a == 0:
+                m, denom = valid * (1 - ua) * (1 - ut), hw * 3
+            else:
+                m, denom = valid * (1 - ut), hw * 3 * (len(segs) - 1)
+            total = total + ((r[:, lv, a] - gt).abs() * m[:, None]).sum() / denom
+    return total
+
+
+@pytest.mark.parametrize("variant", ["paper", "code"])
+def test_male_loss_and_gradient_match_float64_reference(variant):
+    rng = np.random.default_rng(3)
+    u_t = rng.random((18, 24)).astype(np.float32)
+    u_a = rng.random((18, 24)).astype(np.float32)
+    g, cam, bw, segs, codes, _, _ = _toy_view(u_t=u_t, u_a=u_a)
+    view = lang.prepare_view(bw, segs, codes, u_t, u_a, variant)
+    n_ch = 2 * 3 * 3
+    f = torch.randn(len(g), n_ch, generator=torch.Generator().manual_seed(1))
+    f32 = f.clone().requires_grad_(True)
+    scale = lang.slot_scale(18 * 24, 2, 3, variant)
+    per = lang.train_step(f32, view, scale)
+    f64 = f.double().requires_grad_(True)
+    ref = _dense_reference_loss(f64, bw, segs, codes, u_t, u_a, variant)
+    ref.backward()
+    assert float(per.sum().detach()) == pytest.approx(float(ref), rel=1e-5)
+    torch.testing.assert_close(f32.grad.double(), f64.grad, rtol=1e-4, atol=1e-6)
+
+
+def test_sparse_fast_path_trains_like_render():
+    g, cam, bw, segs, codes, _, _ = _toy_view(n=60, seed=5)
+    store = lang.ViewStore(1 << 30, None)
+    store.add(lang.prepare_view(bw, segs, codes, None, None))
+    cfg = dict(iterations=6, stop="fixed", init="data")
+    n_ch = 2 * 3 * 3
+    fast, _, _ = lang.train_male(store, n_ch, lang.MaleConfig(**cfg))
+    slow, _, _ = lang.train_male(
+        store, n_ch, lang.MaleConfig(renderer="raster", **cfg), g, [cam]
+    )
+    torch.testing.assert_close(fast, slow, rtol=0, atol=1e-4)
+    # and one step's gradients agree exactly enough to be the same computation
+    f = torch.randn(len(g), n_ch)
+    a, b = f.clone().requires_grad_(True), f.clone().requires_grad_(True)
+    scale = lang.slot_scale(18 * 24, 2, 3, "paper")
+    lang.train_step(a, store[0], scale)
+    lang.train_step(b, store[0], scale, "raster", g, cam)
+    torch.testing.assert_close(a.grad, b.grad, rtol=1e-4, atol=1e-6)
+
+
+def test_masked_pixels_get_no_gradient():
+    u_t = np.zeros((18, 24), np.float32)
+    u_t[:, :12] = 1.0  # the left half is transient: weight 0
+    g, cam, bw, segs, codes, _, _ = _toy_view(n=60, seed=7, u_t=u_t)
+    n_ch = 2 * 3 * 3
+    f = torch.randn(len(g), n_ch, generator=torch.Generator().manual_seed(2))
+    scale = lang.slot_scale(18 * 24, 2, 3, "paper")
+
+    def grad(segs_):
+        x = f.clone().requires_grad_(True)
+        lang.train_step(x, lang.prepare_view(bw, segs_, codes, u_t, None), scale)
+        return x.grad
+
+    base = grad(segs)
+    other = [s.copy() for s in segs]
+    for s in other:  # new targets only where the mask is zero
+        s[:, :, :12] = (s[:, :, :12] + 1) % 5
+    torch.testing.assert_close(grad(other), base, rtol=0, atol=0)
+    # Gaussians drawn only on masked pixels get exactly zero gradient
+    w = bw.W.to_dense()
+    cols_right = w.reshape(18, 24, -1)[:, 12:].abs().sum((0, 1))
+    only_left = (cols_right == 0) & (w.abs().sum(0) > 0)
+    assert only_left.any()
+    assert (base[only_left] == 0).all()
+
+
+def test_hard_cases_give_no_nan():
+    n_ch = 2 * 3 * 3
+    # all-invalid view (no segment anywhere) and constant uncertainty maps
+    g, cam, bw, segs, codes, _, _ = _toy_view(seed=9)
+    empty = [np.full_like(s, -1) for s in segs]
+    for u in (np.zeros((18, 24), np.float32), np.ones((18, 24), np.float32)):
+        store = lang.ViewStore(1 << 30, None)
+        store.add(lang.prepare_view(bw, empty, codes, u, u))
+        store.add(lang.prepare_view(bw, segs, codes, u, u))
+        for init in ("zero", "data"):
+            f, m, hist = lang.train_male(
+                store, n_ch, lang.MaleConfig(iterations=8, stop="fixed", init=init)
+            )
+            assert torch.isfinite(f).all() and np.isfinite(hist["epoch_loss"]).all()
+            total, per = lang.evaluate_loss(f, store, "paper")
+            assert np.isfinite(total) and np.isfinite(per).all()
+    # zero codes: the first gradient through x/(|x|+1e-9) is huge but finite
+    f = torch.zeros(len(g), n_ch, requires_grad=True)
+    view = lang.prepare_view(bw, segs, codes, None, None)
+    lang.train_step(f, view, lang.slot_scale(18 * 24, 2, 3, "paper"))
+    assert torch.isfinite(f.grad).all() and f.grad.abs().max() > 1e6
+    # no Gaussian in view: nothing covered, constant loss, zero gradient
+    far = g.__class__(
+        g.means + torch.tensor([0.0, 0.0, -100.0]), g.quats, g.scales, g.opacities
+    )
+    bw_far = blend_weights(far, cam)
+    v = lang.prepare_view(bw_far, segs, codes, None, None)
+    assert len(v.rows) == 0 and float(v.const.sum()) > 0
+    x = torch.randn(len(g), n_ch, requires_grad=True)
+    per = lang.train_step(x, v, lang.slot_scale(18 * 24, 2, 3, "paper"))
+    assert torch.equal(per, v.const) and (x.grad == 0).all()
+
+
+def test_view_store_spills_to_disk_and_reads_back(tmp_path):
+    g, cam, bw, segs, codes, _, _ = _toy_view(seed=4)
+    v = lang.prepare_view(bw, segs, codes, None, None)
+    store = lang.ViewStore(v.nbytes + 10, tmp_path / "spill")
+    store.add(v)
+    store.add(v)  # over budget: memory-mapped
+    assert store.ram_bytes == v.nbytes and store.disk_bytes == v.nbytes
+    assert len(list((tmp_path / "spill").glob("*.npy"))) == len(lang.ViewData.ARRAYS)
+    back = store[1]
+    for k, t in v.arrays().items():
+        assert torch.equal(back.arrays()[k], t), k
+    f = torch.randn(len(g), 18)
+    s = lang.slot_scale(18 * 24, 2, 3, "paper")
+    assert torch.equal(
+        lang.masked_l1(lang.csr_matmul(back.w, len(g), f), back, s)[0],
+        lang.masked_l1(lang.csr_matmul(v.w, len(g), f), v, s)[0],
+    )
+
+
+def test_male_artifact_on_tiny(trained):
+    work, _, _ = trained
+    with _art(work, "train-male") as art, _art(work, "reconstruct") as rec:
+        root = art.root()
+        metrics = read_json_dataset(root["metrics_json"])
+        loss = root["log_epoch_loss"]
+        assert len(loss) >= 2 and loss[-1] < loss[0]
+        assert metrics["final_loss"] < loss[0]
+        codes, meta = load_codes(art)
+        assert meta["apps"] == ["orig", "nov1", "nov2", "nov3"]
+        assert meta["levels"] == ["s", "m", "l"]
+        n = len(rec.root()["means"])
+        assert codes.shape == (n, 3, 4, 3)
+        # 4 appearances x 3 levels x 3 channels in float16: 72 B per stored Gaussian
+        assert root["codes"].dtype == np.float16
+        assert metrics["bytes_per_gaussian"] == 72.0
+        seen = np.unpackbits(root["seen_bits"], count=n).astype(bool)
+        assert root["codes"].shape[0] == seen.sum() == metrics["gaussians_seen"]
+        norms = codes[torch.from_numpy(seen)].norm(dim=-1)
+        assert ((norms - 1).abs() < 2e-3).float().mean() > 0.99  # unit, as rendered
+        assert (codes[torch.from_numpy(~seen)] == 0).all()
+        assert np.isfinite(root["codes"]).all()
+
+
+def test_male_rendered_codes_match_targets_better_than_chance(trained):
+    """The trained field, rendered in a train view, is closer to its targets than
+    the same codes shuffled across Gaussians."""
+    from ptovs.field.render import WildField
+    from ptovs.raster import Camera
+    from ptovs.scene import load_scene
+
+    work, data, _ = trained
+    scene = load_scene(data)
+    with (
+        _art(work, "train-male") as art,
+        _art(work, "reconstruct") as rec,
+        _art(work, "train-ae") as ae,
+        _art(work, "extract-features") as feats,
+    ):
+        codes, _ = load_codes(art)
+        g = WildField.from_artifact(rec).gaussians
+        errs, shuffled = [], []
+        perm = torch.randperm(len(g), generator=torch.Generator().manual_seed(0))
+        for view in scene.train_views()[:4]:
+            cam = Camera.from_view(view)
+            seg = feats[view.name]["seg_orig"][1]  # level m, original slot
+            table = ae[view.name]["code_orig"]
+            ok = seg >= 0
+            gt = table[seg[ok].astype(np.int64)]
+            for c, out in ((codes, errs), (codes[perm], shuffled)):
+                img = render(g, cam, c[:, 1, 0].contiguous(), depth=False).image
+                out.append(np.abs(img.numpy()[ok] - gt).mean())
+        assert np.mean(errs) < 0.9 * np.mean(shuffled)
+
+
+# ----------------------------------------------------------- kill and resume --
+
+
+def _ckpt_step(work: Path, stage: str) -> int:
+    (path,) = (work / "tiny_s0" / stage).glob("*.ckpt/last.pt")
+    return int(torch.load(path, weights_only=True)["state"]["step"])
+
+
+def _kill_after(monkeypatch, module, name, n):
+    real = getattr(module, name)
+    calls = {"n": 0}
+
+    def dying(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] > n:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, dying)
+    return calls
+
+
+def test_killed_train_male_resumes_to_the_same_codes(
+    extracted_work, tiny_scene_dir, tmp_path, monkeypatch
+):
+    work = copy_work(extracted_work[0], tmp_path / "work")
+    data = str(tiny_scene_dir)
+    run_cli(work, "train-ae", "--data", data)
+    sets = [
+        "--set",
+        "iterations=40",
+        "--set",
+        "stop=fixed",
+        "--set",
+        "checkpoint_every=10",
+    ]
+    calls = _kill_after(monkeypatch, lang, "train_step", 25)
+    res = CliRunner().invoke(
+        main, ["--work-dir", str(work), *RECON, "train-male", "--data", data, *sets]
+    )
+    assert res.exit_code != 0
+    assert _ckpt_step(work, "train-male") == 20
+    monkeypatch.undo()
+    calls = _kill_after(monkeypatch, lang, "train_step", 10**9)
+    run_cli(work, "train-male", "--data", data, *sets)
+    assert calls["n"] == 20  # iterations 21..40 only
+    with _art(work, "train-male") as art:
+        resumed = art.root()["codes"]
+        assert read_json_dataset(art.root()["metrics_json"])["iterations"] == 40
+    run_cli(work, "train-male", "--data", data, *sets, "--force")
+    with _art(work, "train-male") as art:
+        np.testing.assert_array_equal(art.root()["codes"], resumed)
+
+
+def test_killed_train_ae_resumes_to_the_same_codes(
+    extracted_work, tiny_scene_dir, tmp_path, monkeypatch
+):
+    work = copy_work(extracted_work[0], tmp_path / "work")
+    data = str(tiny_scene_dir)
+    sets = [
+        "--set",
+        "epochs=6",
+        "--set",
+        "checkpoint_every=1",
+        "--set",
+        "early_stop=false",
+    ]
+    _kill_after(monkeypatch, tae, "score", 4)  # dies scoring the 5th epoch
+    res = CliRunner().invoke(
+        main, ["--work-dir", str(work), *RECON, "train-ae", "--data", data, *sets]
+    )
+    assert res.exit_code != 0
+    assert _ckpt_step(work, "train-ae") == 4
+    monkeypatch.undo()
+    run_cli(work, "train-ae", "--data", data, *sets)
+    with _art(work, "train-ae") as art:
+        m = read_json_dataset(art.root()["metrics_json"])
+        assert m["epochs_run"] == 6 and len(art.root()["log_train_loss"]) == 6
+        resumed = {n: art[n]["code_orig"] for n in art.names()}
+    run_cli(work, "train-ae", "--data", data, *sets, "--force")
+    with _art(work, "train-ae") as art:
+        for n in art.names():
+            np.testing.assert_allclose(art[n]["code_orig"], resumed[n], atol=1e-6)
+
+
+# ------------------------------------------------------------------ variants --
+
+
+def test_langsplat_variants_through_the_cli(trained):
+    work, data, _ = trained
+    out = run_cli(work, "train", "--variant", "langsplat", "--data", str(data))
+    for stage in ("reconstruct", "extract-features", "train-ae", "train-male"):
+        assert f"{stage:<20} done" in out, out
+    assert "render-appearances" not in out and "uncertainty" not in out
+    out2 = run_cli(work, "train", "--variant", "langsplat-wild", "--data", str(data))
+    # the originals' features and the LangSplat AE do not depend on the geometry
+    for stage in ("extract-features", "train-ae"):
+        assert _path_of(out2, stage) == _path_of(out, stage)
+        assert f"{stage:<20} cached" in out2
+    assert _path_of(out2, "reconstruct") != _path_of(out, "reconstruct")
+    for text, wild in ((out, False), (out2, True)):
+        with Artifact(_path_of(text, "train-male")) as art:
+            meta = read_json_dataset(art.root()["meta_json"])
+            assert meta["apps"] == ["orig"]
+            assert (
+                read_json_dataset(art.root()["metrics_json"])["bytes_per_gaussian"]
+                == 18.0
+            )
+            assert art.config["use_ut"] is False and art.config["use_ua"] is False
+        with Artifact(_path_of(text, "reconstruct")) as rec:
+            assert rec.config["wild"] is wild
+    with Artifact(_path_of(out, "train-ae")) as ae:
+        assert ae.config["weighting"] == "none" and ae.config["tau_u"] == 1.0
+        assert ae.inputs.keys() == {"features"}  # no uncertainty input
+
+
+def test_train_rejects_unknown_stage_in_set(trained):
+    work, data, _ = trained
+    res = CliRunner().invoke(
+        main,
+        ["--work-dir", str(work), "train", "--data", str(data), "--set", "nope.x=1"],
+    )
+    assert res.exit_code != 0 and "STAGE.KEY=VALUE" in res.output
