@@ -11,7 +11,7 @@ CONFIG ?= configs/default.toml
 # scene folders under DATA (the PT-OVS `label` folder is not a scene)
 SCENES ?= $(filter-out label,$(notdir $(patsubst %/,%,$(wildcard $(DATA)/*/))))
 # implemented stages, in pipeline order (each issue adds its own)
-STAGES := reconstruct render-appearances extract-features uncertainty
+STAGES := reconstruct render-appearances extract-features uncertainty train-ae train-male
 PTOVS  := $(BIN)/ptovs --work-dir $(WORK) --config $(CONFIG)
 
 .PHONY: setup demo test lint format bench scenes status clean-work $(SCENES)
@@ -46,6 +46,7 @@ bench: setup
 	$(BIN)/python bench/encoder_calibration.py --seeds 0 1 2 --out $(WORK)/synthetic
 	$(BIN)/python bench/reconstruct.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
 	$(BIN)/python bench/extract.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
+	$(BIN)/python bench/train.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
 
 scenes: $(SCENES)
 $(SCENES): setup

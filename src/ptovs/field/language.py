@@ -264,18 +264,29 @@ def train_step(
 ) -> Tensor:
     """Loss [L] of one view at codes f; accumulates dLoss/df into f.grad.
 
-    "sparse": R = W·normalize(f) and the gradient Wᵀ·(dL/dR), both as sparse
-    products; only the small normalisation runs through autograd. "raster":
-    R comes from `render()` and its autograd.
+    "sparse": R = W·normalize(f) and the gradient Wᵀ·(dL/dR) as sparse products,
+    and the normalisation's backward written out (no autograd at all; checked
+    against float64 autograd in the tests). "raster": R comes from `render()` and
+    the gradient from autograd.
     """
     hw, n_lv, n_app, n = v.shape
-    fn = normalize_chunks(f)
     if renderer == "sparse":
         with torch.no_grad():
-            r = csr_matmul(v.w, n, fn.detach())
-        per, grad = masked_l1(r, v, scale)
-        fn.backward(csr_matmul(v.wt, len(v.rows), grad))
-    elif renderer == "raster":
+            x = f.detach().reshape(n, -1, CODE_DIM)
+            norm = x.norm(dim=-1, keepdim=True)
+            den = norm + NORM_EPS
+            r = csr_matmul(v.w, n, (x / den).reshape(n, -1))
+            per, grad = masked_l1(r, v, scale)
+            g = csr_matmul(v.wt, len(v.rows), grad).reshape(x.shape)
+            # d/dx of x/(|x|+eps) applied to g: (g − u (u·g) |x|/(|x|+eps)) / (|x|+eps),
+            # u = x/|x| (0 at x = 0, where the Jacobian is I/eps)
+            u = x / norm.clamp_min(1e-30)
+            gx = (g - u * ((u * g).sum(-1, keepdim=True) * (norm / den))) / den
+            gx = gx.reshape(f.shape)
+        f.grad = gx if f.grad is None else f.grad + gx
+        return per
+    fn = normalize_chunks(f)
+    if renderer == "raster":
         if gaussians is None or cam is None:
             raise ValueError("the raster renderer needs the Gaussians and the camera")
         img = render(
