@@ -61,6 +61,16 @@ def extracted_work(tmp_path_factory: pytest.TempPathFactory, tiny_scene_dir: Pat
     return work, out
 
 
+@pytest.fixture(scope="session")
+def trained_work(
+    tmp_path_factory: pytest.TempPathFactory, tiny_scene_dir: Path, extracted_work
+):
+    """(work dir, `ptovs train` output): the extracted tiny chain, then train."""
+    work = copy_work(extracted_work[0], tmp_path_factory.mktemp("trained") / "work")
+    out = run_cli(work, "train", "--data", str(tiny_scene_dir))
+    return work, out
+
+
 def copy_work(src: Path, dst: Path) -> Path:
     """A private copy of a work dir (artifacts, no locks)."""
     shutil.copytree(src, dst, ignore=shutil.ignore_patterns("*.lock"))

@@ -21,11 +21,10 @@ from test_raster import random_scene
 
 
 @pytest.fixture(scope="module")
-def trained(tmp_path_factory, tiny_scene_dir, extracted_work):
+def trained(tmp_path_factory, tiny_scene_dir, trained_work):
     """tiny: the extracted chain, then `ptovs train` (default variant)."""
-    work = copy_work(extracted_work[0], tmp_path_factory.mktemp("train") / "work")
-    out = run_cli(work, "train", "--data", str(tiny_scene_dir))
-    return work, tiny_scene_dir, out
+    work = copy_work(trained_work[0], tmp_path_factory.mktemp("train") / "work")
+    return work, tiny_scene_dir, trained_work[1]
 
 
 def _art(work: Path, stage: str) -> Artifact:

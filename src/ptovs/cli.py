@@ -14,6 +14,7 @@ from ptovs import __version__
 from ptovs.config import load_config, merge, parse_sets
 from ptovs.errors import InputError, MissingInputError
 from ptovs.stage import RunContext, resolve_scene, scene_options
+from ptovs.variants import VARIANTS
 
 log = logging.getLogger("ptovs")
 
@@ -307,12 +308,13 @@ ALL_STAGES = (
 @scene_options
 @click.option(
     "--variant",
-    type=click.Choice(["male", "langsplat", "langsplat-wild"]),
+    type=click.Choice(list(VARIANTS)),
     default="male",
     show_default=True,
     help="male: the paper's MALE-GS. langsplat: LangSplat's recipe (one "
     "appearance, originals only, no uncertainty) on plain-3DGS geometry. "
-    "langsplat-wild: that recipe on the in-the-wild geometry.",
+    "langsplat-wild: that recipe on the in-the-wild geometry. The others are "
+    "the paper's Table 3 ablations and iteration budgets (ptovs.variants).",
 )
 @click.option(
     "--set",

@@ -447,6 +447,20 @@ class SyntheticEncoder:
         """Phrases with a canonical swatch."""
         return list(self._phrases)
 
+    def knows(self, phrase: str) -> bool:
+        """Whether the phrase has a swatch (vocabulary, generic mixture or "sky").
+
+        Any other phrase embeds as a seeded random vector, which no image
+        matches: `query` refuses such phrases instead of returning noise.
+        """
+        key = phrase.strip()
+        return (
+            key in self._phrases
+            or key.lower() in self._lower
+            or key.lower() in self._generic
+            or key.lower() == "sky"
+        )
+
     def encode_images(self, crops: np.ndarray) -> np.ndarray:
         """Embed crops.
 

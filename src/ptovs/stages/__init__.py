@@ -14,4 +14,6 @@ STAGE_MODULES: dict[str, str] = {
     "uncertainty": "ptovs.stages.uncertainty",
     "train-ae": "ptovs.stages.train_ae",
     "train-male": "ptovs.stages.train_male",
+    "query": "ptovs.stages.query",
+    "evaluate": "ptovs.stages.evaluate",
 }

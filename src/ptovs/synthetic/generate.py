@@ -166,6 +166,29 @@ def mask_polygons(mask: np.ndarray) -> list[np.ndarray]:
     return out
 
 
+MIN_COMPONENT_PX = 3
+"""Connected pieces of a query's region smaller than this are left out of the label
+and of its truth alike: their contour has fewer than 3 points, which is no
+polygon (ISAT readers, ours included, refuse it)."""
+
+
+def query_mask(part_id: np.ndarray, pids: list[int]) -> np.ndarray:
+    """The truth mask of a query in one image, as its label encodes it.
+
+    The pixels of the query's parts, without 8-connected pieces smaller than
+    MIN_COMPONENT_PX (slivers of a part seen at a grazing angle).
+    """
+    mask = np.isin(part_id, pids)
+    if not mask.any():
+        return mask
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), 8)
+    small = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] < MIN_COMPONENT_PX)
+    small = small[small > 0]
+    if len(small):
+        mask &= ~np.isin(lab, small)
+    return mask
+
+
 def isat_label(
     part_id: np.ndarray,  # [H, W] int16
     queries: dict[str, list[int]],
@@ -188,10 +211,12 @@ def isat_label(
     H, W = part_id.shape
     objects = []
     for group, (query, pids) in enumerate(queries.items(), start=1):
-        mask = np.isin(part_id, pids)
+        mask = query_mask(part_id, pids)
         if mask.sum() < min_px:
             continue
         for poly in mask_polygons(mask):
+            if len(poly) < 3:  # cannot happen after query_mask; never write one
+                raise AssertionError(f"{name}: {query!r} polygon of {len(poly)} points")
             objects.append(
                 {
                     "category": query,
@@ -447,6 +472,54 @@ def _write_json(path: Path, obj) -> None:
 # ------------------------------------------------------------------ generate --
 
 
+def _plan(cfg: Preset, seed: int):
+    """World, test ids, stems, cameras, eval ids, queries and distractor of a seed."""
+    rng = _rng(seed, 0)
+    world = build_world(rng, int(rng.integers(cfg.n_parts[0], cfg.n_parts[1] + 1)))
+    n_img = cfg.n_train + cfg.n_test
+    plan = _rng(seed, 1)
+    test_ids = set(plan.choice(n_img, cfg.n_test, replace=False).tolist())
+    train_ids = [i for i in range(n_img) if i not in test_ids]
+    n_cand = min(len(train_ids), 3 * cfg.n_eval + 2)
+    cand = sorted(plan.choice(train_ids, n_cand, replace=False).tolist())
+    stems = [
+        f"{seed:02d}{i:06d}_{int(plan.integers(10**9, 10**10))}" for i in range(n_img)
+    ]
+    cams = [
+        sample_camera(_rng(seed, 2, i), world, cfg.long_side, frontal=i in cand)
+        for i in range(n_img)
+    ]
+    query_parts, eval_ids = _choose_queries_and_eval(plan, world, cfg, cand, cams)
+    used = {p.query for p in world.parts}
+    distractors = [d for d in DISTRACTORS if d not in used]
+    distractor = distractors[int(plan.integers(len(distractors)))]
+    queries = {world.parts[k].query: [k] for k in query_parts}
+    return world, test_ids, stems, cams, eval_ids, queries, distractor
+
+
+def eval_labels(preset: str, seed: int) -> list[dict]:
+    """The ISAT labels `generate_scene` writes for (preset, seed), without the rest.
+
+    Renders only the evaluation views (labels do not depend on appearance), so
+    every preset's labels can be checked over many seeds cheaply.
+    """
+    cfg = PRESETS[preset]
+    world, _, stems, cams, eval_ids, queries, _ = _plan(cfg, seed)
+    out = []
+    for i in eval_ids:
+        part_id, _ = render_truth(world, cams[i])
+        out.append(
+            isat_label(
+                part_id,
+                queries,
+                f"{stems[i]}.jpg",
+                f"label/{preset}_s{seed}",
+                _min_px(cams[i], 0.002, 12),
+            )
+        )
+    return out
+
+
 def generate_scene(
     out: Path,
     preset: str = "tiny",
@@ -483,27 +556,9 @@ def generate_scene(
     truth_dir = scene / "synthetic" / "truth"
     image_dir = scene / "dense" / "images"
 
-    rng = _rng(seed, 0)
-    world = build_world(rng, int(rng.integers(cfg.n_parts[0], cfg.n_parts[1] + 1)))
+    world, test_ids, stems, cams, eval_ids, queries, distractor = _plan(cfg, seed)
     n_img = cfg.n_train + cfg.n_test
-    plan = _rng(seed, 1)
-    test_ids = set(plan.choice(n_img, cfg.n_test, replace=False).tolist())
-    train_ids = [i for i in range(n_img) if i not in test_ids]
-    n_cand = min(len(train_ids), 3 * cfg.n_eval + 2)
-    cand = sorted(plan.choice(train_ids, n_cand, replace=False).tolist())
-    stems = [
-        f"{seed:02d}{i:06d}_{int(plan.integers(10**9, 10**10))}" for i in range(n_img)
-    ]
-    cams = [
-        sample_camera(_rng(seed, 2, i), world, cfg.long_side, frontal=i in cand)
-        for i in range(n_img)
-    ]
-    query_parts, eval_ids = _choose_queries_and_eval(plan, world, cfg, cand, cams)
     eval_set = set(eval_ids)
-    used = {p.query for p in world.parts}
-    distractors = [d for d in DISTRACTORS if d not in used]
-    distractor = distractors[int(plan.integers(len(distractors)))]
-    queries = {world.parts[k].query: [k] for k in query_parts}
     logger.info(
         "%s: %d parts, queries %s (+ distractor %r), %d eval views",
         name,
@@ -604,7 +659,7 @@ def generate_scene(
 
 def _check_label(lab: dict, part_id: np.ndarray, queries: dict[str, list[int]]) -> None:
     for cat, m in fill_label(lab).items():
-        gt = np.isin(part_id, queries[cat])
+        gt = query_mask(part_id, queries[cat])
         iou = (m & gt).sum() / max(1, (m | gt).sum())
         if iou < 0.98:
             logger.warning(

@@ -1,0 +1,337 @@
+"""Text queries against rendered language codes (PAPER_SPEC.md §8).
+
+The chain for one view and one query, all of it here so that `query`, `select`
+and the tests share it:
+
+1. `PhraseDecoder`: rendered 3-d codes → cosine of the decoded CLIP feature with
+   each phrase embedding. Exactly (the AE decoder per pixel) or through a table:
+   the decoder is a fixed function of a 3-vector, so its cosine with each phrase
+   is tabulated once per call on a grid over the ball ‖c‖ ≤ 1 and looked up by
+   trilinear interpolation. Rendered codes are blends of unit codes and are not
+   renormalised (§8, as the authors' code), so their norm lies in [0, 1]: the
+   table spans the ball, not only the sphere.
+2. `relevancy`: min over canonical phrases of exp(τa)/(exp(τa)+exp(τb)), written
+   as sigmoid(τ(a − b)): no exponential of a large number is ever formed.
+3. `background`: the paper's filter (sky and background against the query), the
+   authors' code form (sky against the image's queries and itself) or off.
+4. `fuse`: the post-ensemble over appearances (the paper's image-level max
+   weighting by default, the Table 3 modes as options).
+5. `finish`: mean-filter smoothing, level choice, threshold (relative rule by
+   default), majority filter.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+CANONICAL = ("object", "things", "scene", "sky", "building")
+"""The supplement's canonical phrases (PAPER_SPEC.md §8)."""
+BACKGROUND_PHRASES = ("sky", "background")
+FUSIONS = ("weighted", "imglvlmax", "pixmax", "pixavg", "pixweighted")
+BACKGROUND_FILTERS = ("paper", "code", "off")
+DIV_EPS = 1e-9
+
+
+# ----------------------------------------------------------------- decoding --
+
+
+class PhraseDecoder:
+    """Cosines of decoded codes with K phrase embeddings.
+
+    Args:
+        decode: [n, 3] codes → [n, D] unit features (the AE decoder).
+        phrases: [K, D] unit phrase embeddings.
+        mode: "exact" (decode every code) or "table" (trilinear lookup in a
+            grid of `size`³ points over [-1, 1]³, decoded once).
+        size: table points per axis.
+        chunk: codes decoded at once on the exact path (bounds memory:
+            chunk × D floats).
+    """
+
+    def __init__(
+        self,
+        decode,
+        phrases: Tensor,
+        mode: Literal["exact", "table"] = "table",
+        size: int = 64,
+        chunk: int = 65536,
+    ) -> None:
+        if mode not in ("exact", "table"):
+            raise ValueError(f"decode mode must be exact or table, got {mode!r}")
+        if size < 2:
+            raise ValueError(f"table size must be >= 2, got {size}")
+        self.decode = decode
+        self.phrases = phrases.float()
+        self.mode = mode
+        self.size = int(size)
+        self.chunk = int(chunk)
+        self._table: Tensor | None = None
+
+    @torch.no_grad()
+    def exact(self, codes: Tensor) -> Tensor:
+        """[..., 3] → [..., K] cosines by decoding every code."""
+        lead = codes.shape[:-1]
+        flat = codes.reshape(-1, codes.shape[-1]).float()
+        out = torch.empty(len(flat), len(self.phrases))
+        for a in range(0, len(flat), self.chunk):
+            feats = self.decode(flat[a : a + self.chunk])
+            out[a : a + self.chunk] = feats @ self.phrases.T
+        return out.reshape(*lead, len(self.phrases))
+
+    @property
+    def table(self) -> Tensor:
+        """[K, G, G, G] cosines at grid point (c0, c1, c2) = table[:, i0, i1, i2]."""
+        if self._table is None:
+            axis = torch.linspace(-1.0, 1.0, self.size)
+            grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1)
+            self._table = self.exact(grid).permute(3, 0, 1, 2).contiguous()
+        return self._table
+
+    @torch.no_grad()
+    def lookup(self, codes: Tensor) -> Tensor:
+        """[..., 3] → [..., K] cosines by trilinear interpolation in the table.
+
+        Codes outside [-1, 1]³ (impossible for blends of unit codes) are clamped
+        to the cube.
+        """
+        lead = codes.shape[:-1]
+        flat = codes.reshape(-1, 3).float().clamp(-1.0, 1.0)
+        # grid_sample's last grid axis indexes the table's last dimension: (c2, c1, c0)
+        grid = flat.flip(-1).reshape(1, 1, 1, -1, 3)
+        out = F.grid_sample(
+            self.table[None], grid, mode="bilinear", align_corners=True
+        )  # [1, K, 1, 1, n]
+        return out[0, :, 0, 0].T.reshape(*lead, len(self.phrases))
+
+    def __call__(self, codes: Tensor) -> Tensor:
+        return self.lookup(codes) if self.mode == "table" else self.exact(codes)
+
+
+# ---------------------------------------------------------------- relevancy --
+
+
+def relevancy(pos: Tensor, neg: Tensor, temperature: float = 10.0) -> Tensor:
+    """min_j exp(τ·pos)/(exp(τ·pos) + exp(τ·neg_j)), finite for any input.
+
+    Args:
+        pos: [...] cosines with the query.
+        neg: [..., C] cosines with each canonical phrase (C >= 1).
+        temperature: τ (10 in LERF, LangSplat and the authors' code).
+
+    Returns:
+        [...] in [0, 1]. Written as sigmoid(τ(pos − neg)); NaN inputs count as a
+        tie (0.5), infinities saturate.
+    """
+    if neg.shape[-1] == 0:
+        raise ValueError("relevancy needs at least one canonical phrase")
+    d = torch.nan_to_num(pos.unsqueeze(-1) - neg, nan=0.0, posinf=1e4, neginf=-1e4)
+    return torch.sigmoid(float(temperature) * d.clamp(-1e4, 1e4)).amin(-1)
+
+
+def background(
+    cos: Tensor,
+    query: int,
+    bg: list[int],
+    mode: str,
+    temperature: float = 10.0,
+    image_queries: list[int] | None = None,
+) -> Tensor | None:
+    """The background probability b (score_B = 1 − b), or None when off.
+
+    Args:
+        cos: [L, N, H, W, K] cosines (levels, appearances, pixels, phrases).
+        query: phrase index of the query.
+        bg: phrase indices of "sky" and "background" (paper) or of "sky" (code).
+        mode: "paper": b_ℓ(x) = max over appearances and p ∈ bg of p's
+            relevancy against {query}, per level → [L, H, W]. "code": the
+            authors' `--sky_filter`: sky's relevancy against the image's
+            queries and sky itself (so b ≤ 0.5), max over every level and
+            appearance → [1, H, W]. "off": None.
+        image_queries: the image's query phrase indices (code form).
+    """
+    if mode == "off":
+        return None
+    if mode == "paper":
+        pos = cos[..., bg]  # [L, N, H, W, P]
+        neg = cos[..., query][..., None].expand_as(pos)[..., None]
+        return relevancy(pos, neg, temperature).amax(dim=(1, 4))
+    if mode == "code":
+        sky = bg[0]
+        negs = list(dict.fromkeys([*(image_queries or [query]), sky]))
+        b = relevancy(cos[..., sky], cos[..., negs], temperature)  # [L, N, H, W]
+        return b.amax(dim=(0, 1))[None]
+    raise ValueError(f"background filter must be one of {BACKGROUND_FILTERS}")
+
+
+def fuse(scores: Tensor, mode: str = "weighted") -> Tensor:
+    """Post-ensemble over appearances: [L, N, H, W] → [L, H, W].
+
+    Modes (PAPER_SPEC.md §8): "weighted" (the paper's: w_i = max_x s_i / Σ_j
+    max_x s_j, then Σ_i w_i s_i), "imglvlmax" (per level the appearance map with
+    the largest max; the level choice then picks among all N × L maps),
+    "pixmax", "pixavg", "pixweighted" (w_i(x) ∝ 1/((s_i − mean_i s_i)² + 1e-6)).
+    With N = 1 every mode returns the single map.
+    """
+    if mode == "weighted":
+        peak = scores.amax(dim=(2, 3), keepdim=True)  # [L, N, 1, 1]
+        total = peak.sum(1, keepdim=True)
+        n = scores.shape[1]
+        w = torch.where(total > 0, peak / total.clamp_min(DIV_EPS), 1.0 / n)
+        return (w * scores).sum(1)
+    if mode == "imglvlmax":
+        best = scores.amax(dim=(2, 3)).argmax(1)  # [L]
+        return scores[torch.arange(len(scores)), best]
+    if mode == "pixmax":
+        return scores.amax(1)
+    if mode == "pixavg":
+        return scores.mean(1)
+    if mode == "pixweighted":
+        w = 1.0 / ((scores - scores.mean(1, keepdim=True)) ** 2 + 1e-6)
+        return (w * scores).sum(1) / w.sum(1)
+    raise ValueError(f"fusion must be one of {FUSIONS}, got {mode!r}")
+
+
+# ---------------------------------------------------------------- finishing --
+
+
+def smooth(
+    score: np.ndarray, kernel: int, damp: np.ndarray | None = None
+) -> np.ndarray:
+    """Ŝ = 0.5·(Box_k ∗ S ⊙ (1 − damp) + S); box filter with reflect-101 border.
+
+    `damp` is the code-form background b (None: no factor). kernel <= 1: Ŝ = S.
+    """
+    s = np.ascontiguousarray(score, np.float32)
+    if kernel <= 1:
+        return s.copy()
+    box = cv2.blur(s, (int(kernel), int(kernel)), borderType=cv2.BORDER_REFLECT_101)
+    if damp is not None:
+        box = box * (1.0 - damp)
+    return 0.5 * (box + s)
+
+
+def threshold(
+    s: np.ndarray, tau: float = 0.4, mode: Literal["relative", "absolute"] = "relative"
+) -> np.ndarray:
+    """Mask of a smoothed map: relative (min-max rescale n, clip(2n − 1) > τ) or Ŝ ≥ τ."""
+    if mode == "absolute":
+        return s >= tau
+    if mode != "relative":
+        raise ValueError(f"threshold mode must be relative or absolute, got {mode!r}")
+    lo = float(s.min()) if s.size else 0.0
+    n = (s - lo) / (float(s.max() - lo) + DIV_EPS) if s.size else s
+    return np.clip(2.0 * n - 1.0, 0.0, 1.0) > tau
+
+
+def majority(mask: np.ndarray, size: int = 7, exact: bool = False) -> np.ndarray:
+    """A pixel is on when more than half of its size×size window is on (ties off).
+
+    The window is clipped at the image border. `exact` replicates the authors'
+    `smooth()`: rows and columns [i − r, min(i + r + 1, n − 1)), so the last row
+    and column are never counted.
+    """
+    if size <= 1 or mask.size == 0:
+        return mask.copy()
+    r = size // 2
+    h, w = mask.shape
+    ii = np.zeros((h + 1, w + 1), np.int64)
+    ii[1:, 1:] = mask.astype(np.int64).cumsum(0).cumsum(1)
+    cap_h, cap_w = (h - 1, w - 1) if exact else (h, w)
+    y0 = np.clip(np.arange(h) - r, 0, None)
+    y1 = np.minimum(np.arange(h) + r + 1, cap_h)
+    x0 = np.clip(np.arange(w) - r, 0, None)
+    x1 = np.minimum(np.arange(w) + r + 1, cap_w)
+    y1 = np.maximum(y1, y0)
+    x1 = np.maximum(x1, x0)
+    count = ii[y1][:, x1] - ii[y0][:, x1] - ii[y1][:, x0] + ii[y0][:, x0]  # [h, w]
+    area = (y1 - y0)[:, None] * (x1 - x0)[None, :]
+    return 2 * count > area
+
+
+@dataclass(frozen=True)
+class QuerySettings:
+    """The knobs of one query (the `query` stage's config passes them through)."""
+
+    temperature: float = 10.0
+    background_filter: str = "paper"
+    fusion: str = "weighted"
+    smooth_kernel: int = 20
+    threshold: float = 0.4
+    threshold_mode: str = "relative"
+    majority: int = 7
+    majority_exact: bool = False
+
+
+@dataclass
+class QueryResult:
+    smoothed: np.ndarray  # [L, H, W] float32: Ŝ per level
+    level: int  # ℓ*
+    score: float  # max Ŝ at ℓ*
+    mask: np.ndarray  # [H, W] bool
+
+
+def answer(
+    cos: Tensor,
+    query: int,
+    canonical: list[int],
+    bg: list[int],
+    settings: QuerySettings,
+    image_queries: list[int] | None = None,
+    support: Tensor | None = None,
+) -> QueryResult:
+    """Everything after decoding for one (view, query).
+
+    Args:
+        cos: [L, N, H, W, K] cosines of the decoded codes with every phrase.
+        query: the query's phrase index; canonical: the canonical phrases'
+            indices; bg: "sky" (and "background") indices.
+        settings: the query knobs.
+        image_queries: every query of this image (the code-form sky filter).
+        support: [H, W] weight per pixel (1 where the field has a surface, 0 where
+            it is empty), multiplied into every relevancy map; None: all 1.
+    """
+    s = relevancy(cos[..., query], cos[..., canonical], settings.temperature)
+    if support is not None:
+        s = s * support
+    b = background(
+        cos, query, bg, settings.background_filter, settings.temperature, image_queries
+    )
+    damp = None
+    if b is not None and settings.background_filter == "paper":
+        s = s * (1.0 - b)[:, None]
+    elif b is not None:
+        damp = b[0].numpy().astype(np.float32)
+    fused = fuse(s, settings.fusion).numpy()
+    sm = np.stack([smooth(m, settings.smooth_kernel, damp) for m in fused])
+    peaks = sm.reshape(len(sm), -1).max(1)
+    level = int(np.argmax(peaks))
+    mask = threshold(sm[level], settings.threshold, settings.threshold_mode)
+    mask = majority(mask, settings.majority, settings.majority_exact)
+    if not np.all(np.isfinite(sm)):
+        raise FloatingPointError("query: a smoothed score map is not finite")
+    return QueryResult(sm, level, float(peaks[level]), mask)
+
+
+__all__ = [
+    "BACKGROUND_FILTERS",
+    "BACKGROUND_PHRASES",
+    "CANONICAL",
+    "FUSIONS",
+    "PhraseDecoder",
+    "QueryResult",
+    "QuerySettings",
+    "answer",
+    "background",
+    "fuse",
+    "majority",
+    "relevancy",
+    "smooth",
+    "threshold",
+]

@@ -1,0 +1,286 @@
+"""Score the query masks against the scene's labels: mIoU, mPA, mP (PAPER_SPEC.md §9).
+
+    ptovs evaluate --data data/bench_s0 [--variant male --variant langsplat ...]
+
+Pairs are (labelled image, category of that image's label); each is scored at the
+level the query chose. Ground truth: the label's polygons filled at full size,
+OR-ed per category, resized to the render size (nearest by default). Per pair:
+IoU = |P∧G|/|P∨G|; PA = (TP + TN)/(H·W) (binary pixel accuracy, background
+included); P = TP/(TP + FP). mIoU, mPA and mP are the means over all pairs of the
+scene (images with more categories weigh more).
+
+Conventions (recorded in the results): an empty prediction gives IoU = 0 and P = 0;
+a pair whose ground truth is empty at the render size is skipped with a warning;
+a label category the query stage was not asked about is an error.
+
+The stage runs `query` with its default texts (every label category) on the
+labelled views; the command runs whatever of the chain is missing first (so
+`--variant langsplat` trains that baseline), prints a Markdown table with one row
+per variant and writes it with the per-pair JSON (see --out).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from ptovs.artifacts import Artifact, json_dataset, read_json_dataset
+from ptovs.errors import InputError
+from ptovs.stage import scene_input, stage_command, upstream
+from ptovs.stages.query import read_results
+
+log = logging.getLogger(__name__)
+
+NAME = "evaluate"
+VERSION = 1
+
+CONVENTIONS = {
+    "empty_prediction": "IoU = 0, P = 0 (PA as usual)",
+    "empty_ground_truth": "pair skipped with a warning",
+    "averaging": "arithmetic mean over all (image, category) pairs of the scene",
+    "level": "the level the query chose (highest smoothed score)",
+}
+
+
+@dataclass(frozen=True)
+class Config:
+    gt_resize: Literal["nearest", "bilinear"] = "nearest"
+
+
+@dataclass(frozen=True)
+class Inputs:
+    scene: Any = scene_input()
+    query: Artifact = upstream("query")
+
+
+def pair_metrics(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
+    """IoU, PA, P (and recall) of one binary prediction against its ground truth."""
+    p, g = pred.astype(bool), gt.astype(bool)
+    tp = int((p & g).sum())
+    fp = int((p & ~g).sum())
+    fn = int((~p & g).sum())
+    tn = int(p.size - tp - fp - fn)
+    union = tp + fp + fn
+    return {
+        "iou": tp / union if union else 0.0,
+        "pa": (tp + tn) / p.size if p.size else 0.0,
+        "p": tp / (tp + fp) if tp + fp else 0.0,
+        "recall": tp / (tp + fn) if tp + fn else 0.0,
+    }
+
+
+def summarise(pairs: list[dict]) -> dict[str, Any]:
+    """Scene means over pairs, plus per-query means."""
+    if not pairs:
+        return {"pairs": 0, "miou": None, "mpa": None, "mp": None}
+    out: dict[str, Any] = {"pairs": len(pairs)}
+    for key, name in (("iou", "miou"), ("pa", "mpa"), ("p", "mp"), ("recall", "mr")):
+        out[name] = float(np.mean([r[key] for r in pairs]))
+    per_query: dict[str, list[float]] = {}
+    for r in pairs:
+        per_query.setdefault(r["query"], []).append(r["iou"])
+    out["per_query_miou"] = {q: float(np.mean(v)) for q, v in per_query.items()}
+    out["empty_predictions"] = sum(1 for r in pairs if r["pred_pixels"] == 0)
+    return out
+
+
+def run(inputs: Inputs, config: Config) -> dict:
+    from ptovs.scene import load_labels
+
+    scene = inputs.scene
+    meta, views = read_results(inputs.query)
+    queries = list(meta["queries"])
+    pairs: list[dict] = []
+    for name, data in views.items():
+        view = scene.view(name)
+        if scene.labels_dir is None or view not in scene.labelled_views():
+            continue
+        h, w = data["mask"].shape[1:]
+        gts = load_labels(scene, view, (h, w), gt_resize=config.gt_resize)
+        for cat, gt in gts.items():
+            if cat not in queries:
+                raise InputError(
+                    f"evaluate: label category {cat!r} of {name} was not queried; "
+                    "rerun query with its default texts (every label category)"
+                )
+            if not gt.any():
+                log.warning(
+                    "evaluate: %s %r has an empty ground truth: skipped", name, cat
+                )
+                continue
+            qi = queries.index(cat)
+            pred = data["mask"][qi].astype(bool)
+            rec = {
+                "view": name,
+                "query": cat,
+                "level": meta["levels"][int(data["level"][qi])],
+            }
+            rec.update(pair_metrics(pred, gt))
+            rec.update(pred_pixels=int(pred.sum()), gt_pixels=int(gt.sum()))
+            pairs.append(rec)
+    if not pairs:
+        raise InputError(
+            f"evaluate: no labelled (image, category) pair among the {len(views)} "
+            f"queried views of {scene.name}; the scene needs label/<scene>/*.json"
+        )
+    summary = summarise(pairs)
+    summary["conventions"] = CONVENTIONS
+    log.info(
+        "evaluate %s: mIoU %.3f mPA %.3f mP %.3f over %d pairs",
+        scene.name, summary["miou"], summary["mpa"], summary["mp"], len(pairs),
+    )  # fmt: skip
+    return {
+        "pairs_json": json_dataset(pairs),
+        "metrics_json": json_dataset(summary),
+    }
+
+
+def read_metrics(art: Artifact) -> tuple[dict, list[dict]]:
+    root = art.root()
+    return read_json_dataset(root["metrics_json"]), read_json_dataset(
+        root["pairs_json"]
+    )
+
+
+def markdown_table(rows: dict[str, dict[str, dict | None]]) -> str:
+    """Rows {variant: {scene: summary or None}} → Markdown, with a mean column.
+
+    A scene whose summary is None (failed) shows as "failed"; the mean is over
+    the scenes that have numbers, marked with * when some failed.
+    """
+    scenes = list(dict.fromkeys(s for r in rows.values() for s in r))
+    head = "| variant | " + " | ".join(scenes) + " | mean |"
+    lines = [
+        "mIoU / mPA / mP per scene (pairs: (image, category); empty prediction: "
+        "IoU = P = 0)",
+        "",
+        head,
+        "|" + "---|" * (len(scenes) + 2),
+    ]
+    for variant, per_scene in rows.items():
+        cells, got = [], []
+        for s in scenes:
+            m = per_scene.get(s)
+            if m is None or m.get("miou") is None:
+                cells.append("failed" if s in per_scene else "–")
+                continue
+            got.append(m)
+            cells.append(f"{m['miou']:.3f} / {m['mpa']:.3f} / {m['mp']:.3f}")
+        if got:
+            mean = "/".join(
+                f"{np.mean([m[k] for m in got]):.3f}" for k in ("miou", "mpa", "mp")
+            ).replace("/", " / ")
+            if len(got) < len(scenes):
+                mean += " *"
+        else:
+            mean = "–"
+        lines.append(f"| {variant} | " + " | ".join(cells) + f" | {mean} |")
+    return "\n".join(lines) + "\n"
+
+
+def write_report(
+    out: Path, rows: dict[str, dict[str, dict | None]], extra: dict
+) -> None:
+    """evaluate.md and evaluate.json under `out`, atomically."""
+    out.mkdir(parents=True, exist_ok=True)
+    for name, text in (
+        ("evaluate.md", markdown_table(rows)),
+        ("evaluate.json", json.dumps({"results": rows, **extra}, indent=1)),
+    ):
+        path = out / name
+        tmp = path.with_name(f"{name}.{os.getpid()}.tmp")
+        tmp.write_text(text)
+        os.replace(tmp, path)
+
+
+stage_cmd = stage_command(NAME, VERSION, Config, Inputs, run, kind="single")
+
+
+def _command():
+    import click
+
+    from ptovs.stage import Chain, RunContext, execute, resolve_scene, scene_options
+    from ptovs.variants import VARIANTS
+
+    @click.command(name=NAME, help=stage_cmd.help)
+    @scene_options
+    @click.option(
+        "--variant",
+        "variants",
+        multiple=True,
+        type=click.Choice(list(VARIANTS)),
+        help="A recipe to evaluate (repeatable; side by side): male (default), "
+        "langsplat, langsplat-wild, a Table 3 ablation or an iteration budget "
+        "(ptovs.variants).",
+    )
+    @click.option(
+        "--set",
+        "sets",
+        multiple=True,
+        metavar="STAGE.KEY=VALUE",
+        help="Override a config value of any stage for every variant (repeatable).",
+    )
+    @click.option(
+        "--out",
+        type=click.Path(path_type=Path),
+        default=None,
+        help="Folder for evaluate.md and evaluate.json (default: <work>/<scene>).",
+    )
+    @click.option("--force", is_flag=True, help="Recompute query and evaluate.")
+    @click.pass_obj
+    def command(
+        obj: RunContext,
+        scene_name: str | None,
+        data: Path | None,
+        variants: tuple[str, ...],
+        sets: tuple[str, ...],
+        out: Path | None,
+        force: bool,
+    ) -> None:
+        from ptovs.cli import ALL_STAGES, _run_stages, _split_sets
+        from ptovs.variants import variant_sets
+
+        ref = resolve_scene(obj, scene_name, data)
+        split = _split_sets(sets, (*ALL_STAGES, "query", NAME))
+        rows: dict[str, dict[str, dict | None]] = {}
+        arts = {}
+        for variant in variants or ("male",):
+            try:
+                chain = Chain(obj, ref, variant_sets(variant, split))
+            except KeyError as exc:
+                raise click.UsageError(str(exc.args[0])) from None
+            stages = chain.closure(NAME)
+            redo = {"query", NAME} if force else set()
+            _run_stages(chain, [s for s in stages if s != NAME], redo)
+            art = execute(chain, NAME, force=force or obj.force)
+            summary, _ = read_metrics(art)
+            rows[variant] = {ref.name: summary}
+            arts[variant] = str(art.path)
+            art.close()
+        folder = out or obj.work_dir / ref.name
+        write_report(folder, rows, {"artifacts": arts, "conventions": CONVENTIONS})
+        click.echo(markdown_table(rows))
+        click.echo(f"evaluate: {folder / 'evaluate.md'}")
+
+    return command
+
+
+command = _command()
+
+__all__ = [
+    "CONVENTIONS",
+    "Config",
+    "Inputs",
+    "markdown_table",
+    "pair_metrics",
+    "read_metrics",
+    "run",
+    "summarise",
+    "write_report",
+]

@@ -1,0 +1,289 @@
+"""query and evaluate (issue: query/evaluate): relevancy, fusion, masks, metrics, CLI."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from conftest import RECON, copy_work, run_cli
+from ptovs.artifacts import Artifact
+from ptovs.cli import main
+from ptovs.field import relevancy as rel
+from ptovs.stages.evaluate import markdown_table, pair_metrics, read_metrics, summarise
+from ptovs.stages.query import read_results
+
+
+@pytest.fixture(scope="module")
+def queried(tmp_path_factory, tiny_scene_dir, trained_work):
+    work = copy_work(trained_work[0], tmp_path_factory.mktemp("query") / "work")
+    out = run_cli(work, "evaluate", "--data", str(tiny_scene_dir))
+    return work, tiny_scene_dir, out
+
+
+# ---------------------------------------------------------------- relevancy --
+
+
+def test_relevancy_matches_the_exponential_form_in_float64():
+    g = torch.Generator().manual_seed(0)
+    pos = torch.rand(500, generator=g, dtype=torch.float64) * 2 - 1
+    neg = torch.rand(500, 5, generator=g, dtype=torch.float64) * 2 - 1
+    tau = 10.0
+    e_q = torch.exp(tau * pos)[:, None]
+    literal = (e_q / (e_q + torch.exp(tau * neg))).amin(-1)
+    got = rel.relevancy(pos.float(), neg.float(), tau).double()
+    assert torch.allclose(got, literal, atol=1e-6)
+
+
+def test_relevancy_is_finite_for_extreme_inputs():
+    huge = torch.tensor([1e30, -1e30, 3e38, float("inf"), float("-inf"), float("nan")])
+    pos = huge[:, None].expand(6, 6).reshape(-1)
+    neg = huge[None, :].expand(6, 6).reshape(-1, 1)
+    out = rel.relevancy(pos, neg, 10.0)
+    assert torch.isfinite(out).all()
+    assert ((out >= 0) & (out <= 1)).all()
+    # the literal exp form overflows here: exp(10 * 1e30) = inf, inf / inf = nan
+    assert rel.relevancy(torch.tensor([1e30]), torch.tensor([[-1e30]]))[0] == 1.0
+    assert rel.relevancy(torch.tensor([0.2]), torch.tensor([[0.2]]))[0] == 0.5
+    with pytest.raises(ValueError, match="canonical"):
+        rel.relevancy(torch.zeros(3), torch.zeros(3, 0))
+
+
+@pytest.mark.parametrize("mode", rel.FUSIONS)
+def test_every_fusion_mode_reduces_to_the_single_map_for_one_appearance(mode):
+    s = torch.rand(3, 1, 9, 7, generator=torch.Generator().manual_seed(1))
+    assert torch.allclose(rel.fuse(s, mode), s[:, 0], atol=1e-6)
+
+
+def test_fusion_modes_on_a_hand_example():
+    a = torch.zeros(1, 2, 1, 2)
+    a[0, 0, 0] = torch.tensor([0.8, 0.2])  # peak 0.8
+    a[0, 1, 0] = torch.tensor([0.1, 0.4])  # peak 0.4
+    w = torch.tensor([0.8, 0.4]) / 1.2
+    expect = w[0] * a[0, 0, 0] + w[1] * a[0, 1, 0]
+    assert torch.allclose(rel.fuse(a, "weighted")[0, 0], expect)
+    assert torch.allclose(rel.fuse(a, "pixmax")[0, 0], torch.tensor([0.8, 0.4]))
+    assert torch.allclose(rel.fuse(a, "pixavg")[0, 0], torch.tensor([0.45, 0.3]))
+    assert torch.allclose(rel.fuse(a, "imglvlmax")[0, 0], a[0, 0, 0])
+    # all-zero maps: equal weights, no 0/0
+    assert torch.isfinite(rel.fuse(torch.zeros(2, 3, 4, 4), "weighted")).all()
+    with pytest.raises(ValueError):
+        rel.fuse(a, "nope")
+
+
+def test_background_filter_forms():
+    # K phrases: 0 query, 1 sky, 2 background
+    cos = torch.zeros(2, 3, 4, 5, 3)
+    cos[..., 1] = 1.0  # every pixel looks like sky
+    b = rel.background(cos, 0, [1, 2], "paper")
+    assert b.shape == (2, 4, 5)
+    assert torch.allclose(b, torch.sigmoid(torch.tensor(10.0)))
+    code = rel.background(cos, 0, [1], "code", image_queries=[0])
+    assert code.shape == (1, 4, 5)
+    assert torch.allclose(code, torch.tensor(0.5))  # sky against itself caps it
+    assert rel.background(cos, 0, [1, 2], "off") is None
+
+
+def test_threshold_relative_rule_and_constant_map():
+    s = np.linspace(0, 1, 11, dtype=np.float32)[None]
+    m = rel.threshold(s, 0.4, "relative")
+    assert m.tolist() == [[x > 0.7 + 1e-6 for x in np.linspace(0, 1, 11)]]
+    assert not rel.threshold(np.full((4, 4), 0.3, np.float32)).any()
+    assert rel.threshold(s, 0.4, "absolute").sum() == 7  # 0.4 .. 1.0
+
+
+def _majority_loop(mask, size, exact):
+    h, w = mask.shape
+    r = size // 2
+    out = np.zeros_like(mask)
+    for i in range(h):
+        for j in range(w):
+            y1 = min(i + r + 1, h - 1 if exact else h)
+            x1 = min(j + r + 1, w - 1 if exact else w)
+            win = mask[max(i - r, 0) : y1, max(j - r, 0) : x1]
+            out[i, j] = win.size > 0 and 2 * win.sum() > win.size
+    return out
+
+
+@pytest.mark.parametrize("exact", [False, True])
+def test_majority_filter_matches_a_loop(exact):
+    mask = np.random.default_rng(2).random((13, 17)) > 0.5
+    assert np.array_equal(rel.majority(mask, 7, exact), _majority_loop(mask, 7, exact))
+    assert rel.majority(np.zeros((0, 0), bool)).shape == (0, 0)
+
+
+def test_table_decode_close_to_exact():
+    from ptovs.nets.autoencoder import LanguageAE
+
+    torch.manual_seed(0)
+    ae = LanguageAE().eval()
+    phrases = torch.nn.functional.normalize(torch.randn(6, 512), dim=1)
+    exact = rel.PhraseDecoder(ae.decode, phrases, "exact")
+    table = rel.PhraseDecoder(ae.decode, phrases, "table", size=64)
+    c = torch.nn.functional.normalize(torch.randn(4000, 3), dim=1)
+    c = c * torch.rand(4000, 1)  # blends: anywhere in the ball
+    err = (table(c) - exact(c)).abs()
+    assert err.max() < 0.02 and err.mean() < 2e-3  # the documented bound
+    # grid points themselves are exact
+    g = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    assert torch.allclose(table(g), exact(g), atol=1e-5)
+
+
+def test_answer_end_to_end_on_a_synthetic_map():
+    # query phrase 0 matches a square; canonical 1; sky 2, background 3
+    L, N, H, W = 3, 2, 40, 50
+    cos = torch.zeros(L, N, H, W, 4)
+    cos[..., 0] = 0.1
+    cos[..., 1] = 0.3
+    cos[:, :, 10:30, 15:35, 0] = 0.9
+    res = rel.answer(cos, 0, [1], [2, 3], rel.QuerySettings())
+    gt = np.zeros((H, W), bool)
+    gt[10:30, 15:35] = True
+    assert pair_metrics(res.mask, gt)["iou"] > 0.8
+    assert res.smoothed.shape == (L, H, W) and np.isfinite(res.smoothed).all()
+    nan_cos = torch.full_like(cos, float("nan"))
+    res2 = rel.answer(nan_cos, 0, [1], [2, 3], rel.QuerySettings())
+    assert np.isfinite(res2.smoothed).all() and not res2.mask.any()
+
+
+# ------------------------------------------------------------------ metrics --
+
+
+def test_metrics_hand_computed_cases():
+    gt = np.zeros((4, 5), bool)
+    gt[1:3, 1:3] = True  # 4 of 20 pixels
+    empty = pair_metrics(np.zeros_like(gt), gt)
+    assert empty == {"iou": 0.0, "pa": 16 / 20, "p": 0.0, "recall": 0.0}
+    full = pair_metrics(np.ones_like(gt), gt)
+    assert full == {"iou": 4 / 20, "pa": 4 / 20, "p": 4 / 20, "recall": 1.0}
+    perfect = pair_metrics(gt, gt)
+    assert perfect == {"iou": 1.0, "pa": 1.0, "p": 1.0, "recall": 1.0}
+    half = gt.copy()
+    half[1, 1:3] = False
+    half[0, 0] = True  # 2 TP, 1 FP, 2 FN
+    m = pair_metrics(half, gt)
+    assert m["iou"] == pytest.approx(2 / 5) and m["p"] == pytest.approx(2 / 3)
+    assert m["pa"] == pytest.approx(17 / 20)
+    pairs = [
+        {"query": "a", "pred_pixels": 0, **empty},
+        {"query": "b", "pred_pixels": 20, **full},
+        {"query": "a", "pred_pixels": 4, **perfect},
+    ]
+    s = summarise(pairs)
+    assert s["miou"] == pytest.approx((0 + 0.2 + 1) / 3)
+    assert s["mp"] == pytest.approx((0 + 0.2 + 1) / 3)
+    assert s["per_query_miou"] == {"a": 0.5, "b": pytest.approx(0.2)}
+    assert s["empty_predictions"] == 1
+    table = markdown_table({"male": {"s1": s, "s2": None}})
+    assert "failed" in table and "*" in table
+
+
+def test_query_absent_from_an_image_is_not_a_pair(queried):
+    work, data, _ = queried
+    (path,) = sorted((work / "tiny_s0" / "evaluate").glob("*.h5"))
+    with Artifact(path) as art:
+        summary, pairs = read_metrics(art)
+    from ptovs.scene import load_labels, load_scene
+
+    scene = load_scene(data)
+    expected = sum(
+        int(m.any())
+        for v in scene.labelled_views()
+        for m in load_labels(scene, v).values()
+    )
+    assert summary["pairs"] == len(pairs) == expected
+    for p in pairs:  # every pair is a category of that very image's label
+        assert p["query"] in load_labels(scene, scene.view(p["view"]))
+
+
+# -------------------------------------------------------------- CLI / chain --
+
+
+def test_evaluate_metrics_are_numbers_in_range(queried):
+    work, data, out = queried
+    assert "| male |" in out
+    report = json.loads((work / "tiny_s0" / "evaluate.json").read_text())
+    m = report["results"]["male"]["tiny_s0"]
+    for key in ("miou", "mpa", "mp"):
+        assert 0.0 <= m[key] <= 1.0
+    assert m["pairs"] > 0
+    assert "empty_prediction" in report["conventions"]
+    assert (work / "tiny_s0" / "evaluate.md").read_text().startswith("mIoU")
+
+
+def test_query_cli_writes_pictures_and_json_and_is_deterministic(queried, tmp_path):
+    work, data, _ = queried
+    from ptovs.scene import label_categories, load_scene
+
+    text = label_categories(load_scene(data))[0]
+    args = ["query", text, "--data", str(data), "--out", str(tmp_path / "a")]
+    run_cli(work, *args)
+    res = json.loads((tmp_path / "a" / "results.json").read_text())["results"]
+    assert res and all(r["query"] == text for r in res)
+    import cv2
+
+    for r in res:
+        mask = cv2.imread(r["mask"], cv2.IMREAD_UNCHANGED)
+        over = cv2.imread(r["overlay"])
+        assert mask.shape[:2] == over.shape[:2] and over.shape[1] > mask.shape[1]
+        assert set(np.unique(mask)) <= {0, 255}
+        assert (mask > 0).sum() == r["mask_pixels"]
+    # same query again, recomputed: identical masks
+    first = {r["view"]: cv2.imread(r["mask"], cv2.IMREAD_UNCHANGED) for r in res}
+    run_cli(work, *args[:-1], str(tmp_path / "b"), "--force")
+    res_b = json.loads((tmp_path / "b" / "results.json").read_text())["results"]
+    for r in res_b:
+        assert np.array_equal(
+            cv2.imread(r["mask"], cv2.IMREAD_UNCHANGED), first[r["view"]]
+        )
+
+
+def test_unknown_phrase_is_a_clear_error(queried):
+    work, data, _ = queried
+    res = CliRunner().invoke(
+        main,
+        [
+            "--work-dir",
+            str(work),
+            *RECON,
+            "query",
+            "Flying Saucer",
+            "--data",
+            str(data),
+        ],
+    )
+    assert res.exit_code != 0
+    assert "Flying Saucer" in res.output and "vocabulary" in res.output
+
+
+def test_query_every_ensemble_mode_and_filter_runs(queried):
+    work, data, _ = queried
+    for sets in (
+        ["--set", "query.fusion=pixweighted", "--set", "query.background_filter=code"],
+        ["--set", "query.fusion=imglvlmax", "--set", "query.background_filter=off"],
+        ["--set", "query.decode=exact", "--set", "query.threshold_mode=absolute"],
+    ):
+        run_cli(work, "query", "--data", str(data), "--no-pictures", *sets)
+    arts = sorted((work / "tiny_s0" / "query").glob("*.h5"))
+    assert len(arts) >= 4
+    for p in arts:
+        with Artifact(p) as art:
+            meta, views = read_results(art)
+            for d in views.values():
+                assert np.isfinite(d["smoothed"].astype(np.float32)).all()
+                assert d["mask"].shape[0] == len(meta["queries"])
+
+
+def test_evaluate_variants_side_by_side(queried):
+    work, data, _ = queried
+    out = run_cli(
+        work, "evaluate", "--data", str(data), "--variant", "male",
+        "--variant", "pixavg", "--variant", "no-bg-filter",
+    )  # fmt: skip
+    for v in ("| male |", "| pixavg |", "| no-bg-filter |"):
+        assert v in out
+    report = json.loads((work / "tiny_s0" / "evaluate.json").read_text())
+    assert set(report["results"]) == {"male", "pixavg", "no-bg-filter"}
