@@ -1,5 +1,5 @@
 # ptovs: set up, demo, test, benchmark; and run the pipeline over DATA/* scenes.
-#   make demo          fresh machine → venv, tiny synthetic scene, every stage, a PLY
+#   make demo          fresh machine → venv, tiny synthetic scene, every stage, masks, metrics, a PLY
 #   make test          the test suite (what CI runs)
 #   make -j3 scenes    every scene under DATA in parallel, stages in order
 PYTHON ?= python3
@@ -11,7 +11,7 @@ CONFIG ?= configs/default.toml
 # scene folders under DATA (the PT-OVS `label` folder is not a scene)
 SCENES ?= $(filter-out label,$(notdir $(patsubst %/,%,$(wildcard $(DATA)/*/))))
 # implemented stages, in pipeline order (each issue adds its own)
-STAGES := reconstruct render-appearances extract-features uncertainty train-ae train-male
+STAGES := reconstruct render-appearances extract-features uncertainty train-ae train-male query evaluate
 PTOVS  := $(BIN)/ptovs --work-dir $(WORK) --config $(CONFIG)
 
 .PHONY: setup demo test lint format bench scenes status clean-work $(SCENES)
@@ -30,6 +30,7 @@ demo: setup
 	@for s in $(STAGES); do $(PTOVS) $$s --data $(DATA)/tiny_s0 || exit 1; done
 	$(PTOVS) export-ply --data $(DATA)/tiny_s0 --out $(WORK)/tiny_s0/tiny_s0.ply
 	$(PTOVS) status --data $(DATA)/tiny_s0
+	@echo "masks, heatmaps, overlays: $(WORK)/tiny_s0/query-out/male/; metrics: $(WORK)/tiny_s0/evaluate.md"
 
 test: setup
 	$(BIN)/python -m pytest -q

@@ -111,7 +111,9 @@ def _path(stdout: str, stage: str | None = None) -> Path:
     return Path(lines[-1].split(": ", 1)[1])
 
 
-def bench_seed(work: Path, scene: Path, force: bool, fixed30k: bool) -> dict:
+def bench_seed(
+    work: Path, scene: Path, force: bool, fixed30k: bool, variants: bool
+) -> dict:
     res: dict = {}
     extra = ["--force"] if force else []
     for stage in ("train-ae", "train-male"):
@@ -119,7 +121,7 @@ def bench_seed(work: Path, scene: Path, force: bool, fixed30k: bool) -> dict:
         res[stage] = {"wall_s": round(wall, 1), "peak_rss_mb": round(rss)}
         res[stage]["metrics"] = _metrics(_path(out))
         print(stage, json.dumps(res[stage]), flush=True)
-    for variant in ("langsplat", "langsplat-wild"):
+    for variant in ("langsplat", "langsplat-wild") if variants else ():
         wall, rss, out = _ptovs(
             work, "train", "--variant", variant, "--data", str(scene)
         )
@@ -165,6 +167,13 @@ def main() -> None:
         default=[0],
         help="seeds that also train a fixed 30k iterations (~25 min each)",
     )
+    ap.add_argument(
+        "--variant-seeds",
+        nargs="*",
+        type=int,
+        default=None,
+        help="seeds that also run the langsplat variants (default: every seed)",
+    )
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     out_path = args.work / "bench_train.json"
@@ -186,7 +195,11 @@ def main() -> None:
         for seed in args.seeds:
             scene = _scene(args.data, seed)
             results[f"bench_s{seed}"] = bench_seed(
-                args.work / "default", scene, args.force, seed in args.fixed_seeds
+                args.work / "default",
+                scene,
+                args.force,
+                seed in args.fixed_seeds,
+                args.variant_seeds is None or seed in args.variant_seeds,
             )
             save()
 
