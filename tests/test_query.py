@@ -228,7 +228,7 @@ def test_query_cli_writes_pictures_and_json_and_is_deterministic(queried, tmp_pa
     for r in res:
         mask = cv2.imread(r["mask"], cv2.IMREAD_UNCHANGED)
         over = cv2.imread(r["overlay"])
-        assert mask.shape[:2] == over.shape[:2] and over.shape[1] > mask.shape[1]
+        assert mask.shape[0] == over.shape[0] and over.shape[1] > mask.shape[1]
         assert set(np.unique(mask)) <= {0, 255}
         assert (mask > 0).sum() == r["mask_pixels"]
     # same query again, recomputed: identical masks
