@@ -63,11 +63,10 @@ EVAL_VARIANTS = (
 
 
 def _chain(work: Path, scene: Path, variant: str, extra: dict | None = None):
-    from ptovs.config import load_config
     from ptovs.stage import Chain, RunContext, resolve_scene
     from ptovs.variants import variant_sets
 
-    ctx = RunContext(work, load_config(ROOT / "configs" / "default.toml"))
+    ctx = RunContext(work, {})  # as `ptovs` without --config (the CLI runs above)
     ref = resolve_scene(ctx, None, scene)
     return Chain(ctx, ref, variant_sets(variant, extra))
 
