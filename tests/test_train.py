@@ -336,20 +336,24 @@ def test_male_rendered_codes_match_targets_better_than_chance(trained):
         _art(work, "train-ae") as ae,
         _art(work, "extract-features") as feats,
     ):
-        codes, _ = load_codes(art)
+        codes, meta = load_codes(art)
         g = WildField.from_artifact(rec).gaussians
         errs, shuffled = [], []
         perm = torch.randperm(len(g), generator=torch.Generator().manual_seed(0))
         for view in scene.train_views()[:4]:
             cam = Camera.from_view(view)
-            seg = feats[view.name]["seg_orig"][1]  # level m, original slot
-            table = ae[view.name]["code_orig"]
-            ok = seg >= 0
-            gt = table[seg[ok].astype(np.int64)]
-            for c, out in ((codes, errs), (codes[perm], shuffled)):
-                img = render(g, cam, c[:, 1, 0].contiguous(), depth=False).image
-                out.append(np.abs(img.numpy()[ok] - gt).mean())
-        assert np.mean(errs) < 0.9 * np.mean(shuffled)
+            for ai, app in enumerate(meta["apps"]):
+                seg = feats[view.name][f"seg_{app}"]
+                table = ae[view.name][f"code_{app}"]
+                for lv in range(len(meta["levels"])):
+                    ok = seg[lv] >= 0
+                    gt = table[seg[lv][ok].astype(np.int64)]
+                    for c, out in ((codes, errs), (codes[perm], shuffled)):
+                        img = render(g, cam, c[:, lv, ai].contiguous(), depth=False)
+                        out.append(np.abs(img.image.numpy()[ok] - gt).mean())
+        # every level and slot: on tiny (715 Gaussians, a few large segments) the
+        # shuffled codes are a strong baseline; trained measured 0.875 of it
+        assert np.mean(errs) < 0.95 * np.mean(shuffled)
 
 
 # ----------------------------------------------------------- kill and resume --
