@@ -48,6 +48,7 @@ bench: setup
 	$(BIN)/python bench/reconstruct.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
 	$(BIN)/python bench/extract.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
 	$(BIN)/python bench/train.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
+	$(BIN)/python bench/query.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
 
 scenes: $(SCENES)
 $(SCENES): setup
