@@ -95,20 +95,30 @@ class PhraseDecoder:
         return self._table
 
     @torch.no_grad()
-    def lookup(self, codes: Tensor) -> Tensor:
-        """[..., 3] → [..., K] cosines by trilinear interpolation in the table.
+    def lookup(self, codes: Tensor, table: Tensor | None = None) -> Tensor:
+        """[..., 3] → [..., C] by trilinear interpolation in a table.
 
-        Codes outside [-1, 1]³ (impossible for blends of unit codes) are clamped
-        to the cube.
+        Args:
+            codes: rendered codes; outside [-1, 1]³ (impossible for blends of
+                unit codes) they are clamped to the cube.
+            table: [C, G, G, G] values on this decoder's grid (default: the
+                cosines with every phrase, C = K); e.g. a query's relevancy,
+                tabulated once, so a pixel costs one C = 1 lookup.
         """
+        table = self.table if table is None else table
         lead = codes.shape[:-1]
         flat = codes.reshape(-1, 3).float().clamp(-1.0, 1.0)
         # grid_sample's last grid axis indexes the table's last dimension: (c2, c1, c0)
         grid = flat.flip(-1).reshape(1, 1, 1, -1, 3)
         out = F.grid_sample(
-            self.table[None], grid, mode="bilinear", align_corners=True
-        )  # [1, K, 1, 1, n]
-        return out[0, :, 0, 0].T.reshape(*lead, len(self.phrases))
+            table[None], grid, mode="bilinear", align_corners=True
+        )  # [1, C, 1, 1, n]
+        return out[0, :, 0, 0].T.reshape(*lead, len(table))
+
+    @property
+    def grid_cosines(self) -> Tensor:
+        """[G, G, G, K]: the table with phrases last (for functions of one pixel)."""
+        return self.table.permute(1, 2, 3, 0)
 
     def __call__(self, codes: Tensor) -> Tensor:
         return self.lookup(codes) if self.mode == "table" else self.exact(codes)
@@ -135,6 +145,41 @@ def relevancy(pos: Tensor, neg: Tensor, temperature: float = 10.0) -> Tensor:
     return torch.sigmoid(float(temperature) * d.clamp(-1e4, 1e4)).amin(-1)
 
 
+def background_per_map(
+    cos: Tensor,
+    query: int,
+    bg: list[int],
+    mode: str,
+    temperature: float = 10.0,
+    image_queries: list[int] | None = None,
+) -> Tensor | None:
+    """The background probability of each map's pixel, before the max over maps.
+
+    A function of one pixel's cosines only (so it can be tabulated). "paper": the
+    max over p ∈ bg (sky, background) of p's relevancy against {query}; "code":
+    sky's relevancy against the image's queries and sky itself (≤ 0.5); "off": None.
+    """
+    if mode == "off":
+        return None
+    if mode == "paper":
+        pos = cos[..., bg]  # [..., P]
+        neg = cos[..., query][..., None].expand_as(pos)[..., None]
+        return relevancy(pos, neg, temperature).amax(-1)
+    if mode == "code":
+        sky = bg[0]
+        negs = list(dict.fromkeys([*(image_queries or [query]), sky]))
+        return relevancy(cos[..., sky], cos[..., negs], temperature)
+    raise ValueError(f"background filter must be one of {BACKGROUND_FILTERS}")
+
+
+def reduce_background(b: Tensor | None, mode: str) -> Tensor | None:
+    """[L, N, H, W] per-map background → paper: max over appearances [L, H, W];
+    code: max over every map [1, H, W]."""
+    if b is None:
+        return None
+    return b.amax(1) if mode == "paper" else b.amax(dim=(0, 1))[None]
+
+
 def background(
     cos: Tensor,
     query: int,
@@ -156,18 +201,8 @@ def background(
             appearance → [1, H, W]. "off": None.
         image_queries: the image's query phrase indices (code form).
     """
-    if mode == "off":
-        return None
-    if mode == "paper":
-        pos = cos[..., bg]  # [L, N, H, W, P]
-        neg = cos[..., query][..., None].expand_as(pos)[..., None]
-        return relevancy(pos, neg, temperature).amax(dim=(1, 4))
-    if mode == "code":
-        sky = bg[0]
-        negs = list(dict.fromkeys([*(image_queries or [query]), sky]))
-        b = relevancy(cos[..., sky], cos[..., negs], temperature)  # [L, N, H, W]
-        return b.amax(dim=(0, 1))[None]
-    raise ValueError(f"background filter must be one of {BACKGROUND_FILTERS}")
+    per_map = background_per_map(cos, query, bg, mode, temperature, image_queries)
+    return reduce_background(per_map, mode)
 
 
 def fuse(scores: Tensor, mode: str = "weighted") -> Tensor:
@@ -277,6 +312,56 @@ class QueryResult:
     mask: np.ndarray  # [H, W] bool
 
 
+def score_maps(
+    cos: Tensor,
+    query: int,
+    canonical: list[int],
+    bg: list[int],
+    settings: QuerySettings,
+    image_queries: list[int] | None = None,
+) -> tuple[Tensor, Tensor | None]:
+    """(relevancy, per-map background) of every pixel: functions of its cosines."""
+    s = relevancy(cos[..., query], cos[..., canonical], settings.temperature)
+    b = background_per_map(
+        cos, query, bg, settings.background_filter, settings.temperature, image_queries
+    )
+    return s, b
+
+
+def finish(
+    s: Tensor,
+    b: Tensor | None,
+    settings: QuerySettings,
+    support: Tensor | None = None,
+) -> QueryResult:
+    """Background filter, fusion, smoothing, level, threshold, majority filter.
+
+    Args:
+        s: [L, N, H, W] relevancy of each map.
+        b: [L, N, H, W] per-map background probability, or None (filter off).
+        settings: the query knobs.
+        support: [H, W] weight per pixel (1 where the field has a surface, 0 where
+            it is empty), multiplied into every relevancy map; None: all 1.
+    """
+    if support is not None:
+        s = s * support
+    b = reduce_background(b, settings.background_filter)
+    damp = None
+    if b is not None and settings.background_filter == "paper":
+        s = s * (1.0 - b)[:, None]
+    elif b is not None:
+        damp = b[0].numpy().astype(np.float32)
+    fused = fuse(s, settings.fusion).numpy()
+    sm = np.stack([smooth(m, settings.smooth_kernel, damp) for m in fused])
+    peaks = sm.reshape(len(sm), -1).max(1)
+    level = int(np.argmax(peaks))
+    mask = threshold(sm[level], settings.threshold, settings.threshold_mode)
+    mask = majority(mask, settings.majority, settings.majority_exact)
+    if not np.all(np.isfinite(sm)):
+        raise FloatingPointError("query: a smoothed score map is not finite")
+    return QueryResult(sm, level, float(peaks[level]), mask)
+
+
 def answer(
     cos: Tensor,
     query: int,
@@ -294,29 +379,10 @@ def answer(
             indices; bg: "sky" (and "background") indices.
         settings: the query knobs.
         image_queries: every query of this image (the code-form sky filter).
-        support: [H, W] weight per pixel (1 where the field has a surface, 0 where
-            it is empty), multiplied into every relevancy map; None: all 1.
+        support: see `finish`.
     """
-    s = relevancy(cos[..., query], cos[..., canonical], settings.temperature)
-    if support is not None:
-        s = s * support
-    b = background(
-        cos, query, bg, settings.background_filter, settings.temperature, image_queries
-    )
-    damp = None
-    if b is not None and settings.background_filter == "paper":
-        s = s * (1.0 - b)[:, None]
-    elif b is not None:
-        damp = b[0].numpy().astype(np.float32)
-    fused = fuse(s, settings.fusion).numpy()
-    sm = np.stack([smooth(m, settings.smooth_kernel, damp) for m in fused])
-    peaks = sm.reshape(len(sm), -1).max(1)
-    level = int(np.argmax(peaks))
-    mask = threshold(sm[level], settings.threshold, settings.threshold_mode)
-    mask = majority(mask, settings.majority, settings.majority_exact)
-    if not np.all(np.isfinite(sm)):
-        raise FloatingPointError("query: a smoothed score map is not finite")
-    return QueryResult(sm, level, float(peaks[level]), mask)
+    s, b = score_maps(cos, query, canonical, bg, settings, image_queries)
+    return finish(s, b, settings, support)
 
 
 __all__ = [
@@ -329,6 +395,10 @@ __all__ = [
     "QuerySettings",
     "answer",
     "background",
+    "background_per_map",
+    "finish",
+    "reduce_background",
+    "score_maps",
     "fuse",
     "majority",
     "relevancy",

@@ -12,7 +12,8 @@ relative rule (min-max rescale, then clip(2n − 1) > τ, i.e. n > 0.7) and a 7�
 majority filter. See `ptovs.field.relevancy` for each step and its options.
 
 Decoding (`decode`): "table" tabulates the decoder's cosine with each phrase once
-per call on a `table_size`³ grid over the ball of rendered codes and interpolates;
+per call on a `table_size`³ grid over the ball of rendered codes, turns it into
+each query's relevancy and background tables, and interpolates those per pixel;
 "exact" decodes every pixel. docs/benchmarks.md gives the table's error and how
 often it changes a mask pixel.
 
@@ -45,6 +46,8 @@ from ptovs.field.relevancy import (
     PhraseDecoder,
     QuerySettings,
     answer,
+    finish,
+    score_maps,
 )
 from ptovs.field.render import WildField
 from ptovs.raster import Camera, render
@@ -223,6 +226,7 @@ class Querier:
             bg = ["sky"]
         self.bg = [self.index[p] for p in bg]
         self.canonical = [self.index[p] for p in config.canonical]
+        self._tables: dict[tuple, torch.Tensor] = {}
 
     @torch.no_grad()
     def code_maps(self, view) -> tuple[torch.Tensor, torch.Tensor]:
@@ -239,20 +243,52 @@ class Querier:
         img = out.image.reshape(h, w, len(self.levels), len(self.apps), CODE_DIM)
         return img.permute(2, 3, 0, 1, 4), out.alpha[..., 0]
 
+    def query_table(self, query: int, image_queries: tuple[int, ...]) -> torch.Tensor:
+        """[C, G, G, G]: a query's relevancy (and per-map background) on the grid.
+
+        Both are functions of one pixel's code, so the table path looks up C ≤ 2
+        values per pixel instead of K cosines; cached per (query, image queries).
+        """
+        key = (query, image_queries)
+        if key not in self._tables:
+            s, b = score_maps(
+                self.decoder.grid_cosines,
+                query,
+                self.canonical,
+                self.bg,
+                self.settings,
+                list(image_queries),
+            )
+            self._tables[key] = torch.stack([s] if b is None else [s, b]).contiguous()
+        return self._tables[key]
+
     def answer_view(self, view, queries: list[str] | None = None):
         codes, alpha = self.code_maps(view)
-        cos = self.decoder(codes)
         support = None
         if self.config.min_alpha > 0:
             support = (alpha >= self.config.min_alpha).float()
         queries = queries or self.queries
         qidx = [self.index[q] for q in queries]
-        return [
-            answer(
-                cos, q, self.canonical, self.bg, self.settings, qidx, support=support
-            )
-            for q in qidx
-        ]
+        if self.config.decode == "exact":
+            cos = self.decoder(codes)
+            return [
+                answer(
+                    cos,
+                    q,
+                    self.canonical,
+                    self.bg,
+                    self.settings,
+                    qidx,
+                    support=support,
+                )
+                for q in qidx
+            ]
+        out = []
+        for q in qidx:
+            vals = self.decoder.lookup(codes, self.query_table(q, tuple(qidx)))
+            b = vals[..., 1] if vals.shape[-1] > 1 else None
+            out.append(finish(vals[..., 0], b, self.settings, support))
+        return out
 
 
 def run(inputs: Inputs, config: Config, skip: frozenset = frozenset()) -> Iterator:
