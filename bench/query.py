@@ -229,16 +229,14 @@ def eval_part(
     work: Path, scene: Path, variants: list[str], oracle: bool, res: dict, save
 ) -> dict:
     """Fills `res` {label: figures} one variant at a time, calling save() after each."""
-    runs = [(v, v, []) for v in variants]
-    if oracle:
-        feats = make_oracle(work.parent, scene)
-        runs.append(
-            (
-                "oracle",
-                "langsplat-wild",
-                ["--set", f"extract-features.import_dir={feats}"],
-            )
-        )
+    runs = []
+    for v in variants:
+        if v != "oracle":
+            runs.append((v, v, []))
+        elif oracle:
+            feats = make_oracle(work.parent, scene)
+            sets = ["--set", f"extract-features.import_dir={feats}"]
+            runs.append(("oracle", "langsplat-wild", sets))
     for label, variant, sets in runs:
         out_dir = work.parent / "eval" / scene.name / label
         wall, rss, _ = _ptovs(

@@ -58,7 +58,7 @@ from ptovs.stages.train_male import load_codes
 log = logging.getLogger(__name__)
 
 NAME = "query"
-VERSION = 1
+VERSION = 2  # 2: per-query relevancy tables
 
 
 @dataclass(frozen=True)
