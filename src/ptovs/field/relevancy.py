@@ -108,12 +108,23 @@ class PhraseDecoder:
         table = self.table if table is None else table
         lead = codes.shape[:-1]
         flat = codes.reshape(-1, 3).float().clamp(-1.0, 1.0)
+        n = len(flat)
+        # grid_sample parallelises over the batch only: split the points into
+        # 2 × threads batches against the same (expanded, not copied) table
+        b = max(1, min(2 * torch.get_num_threads(), n // 4096))
+        per = -(-n // b) if n else 0
+        if per * b > n:
+            flat = torch.cat([flat, flat.new_zeros(per * b - n, 3)])
         # grid_sample's last grid axis indexes the table's last dimension: (c2, c1, c0)
-        grid = flat.flip(-1).reshape(1, 1, 1, -1, 3)
+        grid = flat.flip(-1).reshape(b, 1, 1, per, 3)
         out = F.grid_sample(
-            table[None], grid, mode="bilinear", align_corners=True
-        )  # [1, C, 1, 1, n]
-        return out[0, :, 0, 0].T.reshape(*lead, len(table))
+            table[None].expand(b, -1, -1, -1, -1),
+            grid,
+            mode="bilinear",
+            align_corners=True,
+        )  # [b, C, 1, 1, per]
+        out = out[:, :, 0, 0].permute(0, 2, 1).reshape(-1, len(table))[:n]
+        return out.reshape(*lead, len(table))
 
     @property
     def grid_cosines(self) -> Tensor:
