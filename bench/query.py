@@ -11,6 +11,8 @@ Parts:
   speed   one text on one view (4 appearances × 3 levels, bench resolution): render,
           decode, relevancy-to-mask, median of 10 warm runs; and the cold start
           (loading the field and the AE, the text embeddings, the table)
+  features2d  the same query pipeline on the photos' 2-D segment features (raw and
+          through the AE; originals and all appearances): what the encoder allows
   eval    per seed, `ptovs evaluate --variant V` in a fresh process for every
           variant (full method, LangSplat baselines, Table 3 rows, budgets) and the
           clean-feature oracle (features of the world re-rendered at the train
@@ -173,6 +175,66 @@ def speed_part(work: Path, scene: Path, reps: int = 10) -> dict:
         gaussians=len(q.gaussians),
     )
     print("speed", json.dumps(res), flush=True)
+    return res
+
+
+def features2d_part(work: Path, scene: Path) -> dict:
+    """The query pipeline on the photos' own 2-D segment features (no field):
+    raw 512-d features and AE-reconstructed ones, originals and all 4 appearances.
+    An upper bound of what the 3-D field can answer with this encoder."""
+    import torch
+
+    from ptovs.encoders.synthetic import SyntheticEncoder
+    from ptovs.features import SegmentFeatures
+    from ptovs.field.relevancy import (
+        BACKGROUND_PHRASES,
+        CANONICAL,
+        QuerySettings,
+        answer,
+    )
+    from ptovs.scene import label_categories, load_labels
+    from ptovs.stages.evaluate import pair_metrics
+    from ptovs.stages.train_ae import load_autoencoder
+
+    chain = _chain(work, scene, "male")
+    sc = chain.scene.load()
+    fe, ae_art = chain.inputs_of("extract-features"), chain.inputs_of("train-ae")
+    ae = load_autoencoder(ae_art).eval()
+    queries = label_categories(sc)
+    phrases = list(dict.fromkeys([*queries, *CANONICAL, *BACKGROUND_PHRASES]))
+    emb = torch.from_numpy(SyntheticEncoder.from_scene(sc.root).encode_texts(phrases))
+    idx = {p: i for i, p in enumerate(phrases)}
+    canon = [idx[p] for p in CANONICAL]
+    bg = [idx[p] for p in BACKGROUND_PHRASES]
+    res = {}
+    for mode in ("raw_orig", "raw_all", "ae_orig", "ae_all"):
+        ious = []
+        apps = ["orig"] if mode.endswith("orig") else ["orig", "nov1", "nov2", "nov3"]
+        for view in sc.labelled_views():
+            d = fe[view.name]
+            maps = []
+            for a in apps:
+                sf = SegmentFeatures.from_view(d, a)
+                levels = []
+                for lv in range(sf.levels):
+                    f, valid = sf.dense(lv)
+                    f = torch.from_numpy(f).float()
+                    if mode.startswith("ae"):
+                        with torch.no_grad():
+                            flat = f.reshape(-1, f.shape[-1])
+                            f = ae.decode(ae.encode(flat)).reshape(f.shape)
+                    c = f @ emb.float().T
+                    c[~torch.from_numpy(valid)] = 0
+                    levels.append(c)
+                maps.append(torch.stack(levels))
+            cos = torch.stack(maps, 1)  # [L, N, H, W, K]
+            gts = load_labels(sc, view, cos.shape[2:4])
+            qidx = [idx[q] for q in gts]
+            for cat, gt in gts.items():
+                r = answer(cos, idx[cat], canon, bg, QuerySettings(), qidx)
+                ious.append(pair_metrics(r.mask, gt)["iou"])
+        res[mode] = float(np.mean(ious))
+        print("features2d", mode, round(res[mode], 3), flush=True)
     return res
 
 
@@ -384,6 +446,9 @@ def main() -> None:
         scene = _scene(args.data, seed)
         if "decode" in args.parts:
             results[f"decode_s{seed}"] = decode_part(work, scene)
+            save()
+        if "features2d" in args.parts:
+            results[f"features2d_s{seed}"] = features2d_part(work, scene)
             save()
         if "speed" in args.parts:
             results[f"speed_s{seed}"] = speed_part(work, scene)
