@@ -122,6 +122,18 @@ def _fsync_file(path: Path) -> None:
         os.fsync(fh.fileno())
 
 
+def write_atomic(path: Path, data: bytes | str) -> None:
+    """Write a small file so that a reader never sees it half written."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+    if isinstance(data, str):
+        tmp.write_text(data)
+    else:
+        tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
 def _safe_name(name: str) -> str:
     """View name → HDF5 link name / shard file name (no '/' and no leading '.')."""
     if not name:

@@ -7,7 +7,6 @@ write_png(path, over)
 
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 
@@ -74,17 +73,15 @@ def overlay(
 
 def write_png(path: Path, rgb_or_gray: np.ndarray) -> None:
     """Write atomically (a reader never sees half a PNG)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    from ptovs.artifacts import write_atomic
+
     arr = rgb_or_gray
     if arr.ndim == 3:
         arr = cv2.cvtColor(arr, cv2.COLOR_RGB2BGR)
     ok, buf = cv2.imencode(".png", arr)
     if not ok:
         raise OSError(f"could not encode {path}")
-    tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
-    tmp.write_bytes(buf.tobytes())
-    os.replace(tmp, path)
+    write_atomic(Path(path), buf.tobytes())
 
 
 def slug(text: str) -> str:

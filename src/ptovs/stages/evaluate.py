@@ -23,14 +23,13 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
-from ptovs.artifacts import Artifact, json_dataset, read_json_dataset
+from ptovs.artifacts import Artifact, json_dataset, read_json_dataset, write_atomic
 from ptovs.errors import InputError
 from ptovs.stage import scene_input, stage_command, upstream
 from ptovs.stages.query import read_results
@@ -94,13 +93,14 @@ def run(inputs: Inputs, config: Config) -> dict:
     from ptovs.scene import load_labels
 
     scene = inputs.scene
-    meta, views = read_results(inputs.query)
+    meta, views = read_results(inputs.query, ("mask", "level"))
     queries = list(meta["queries"])
+    labelled = {v.name for v in scene.labelled_views()} if scene.labels_dir else set()
     pairs: list[dict] = []
     for name, data in views.items():
-        view = scene.view(name)
-        if scene.labels_dir is None or view not in scene.labelled_views():
+        if name not in labelled:
             continue
+        view = scene.view(name)
         h, w = data["mask"].shape[1:]
         gts = load_labels(scene, view, (h, w), gt_resize=config.gt_resize)
         for cat, gt in gts.items():
@@ -188,15 +188,10 @@ def write_report(
     out: Path, rows: dict[str, dict[str, dict | None]], extra: dict
 ) -> None:
     """evaluate.md and evaluate.json under `out`, atomically."""
-    out.mkdir(parents=True, exist_ok=True)
-    for name, text in (
-        ("evaluate.md", markdown_table(rows)),
-        ("evaluate.json", json.dumps({"results": rows, **extra}, indent=1)),
-    ):
-        path = out / name
-        tmp = path.with_name(f"{name}.{os.getpid()}.tmp")
-        tmp.write_text(text)
-        os.replace(tmp, path)
+    write_atomic(out / "evaluate.md", markdown_table(rows))
+    write_atomic(
+        out / "evaluate.json", json.dumps({"results": rows, **extra}, indent=1)
+    )
 
 
 stage_cmd = stage_command(NAME, VERSION, Config, Inputs, run, kind="single")

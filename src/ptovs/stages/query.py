@@ -36,7 +36,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from ptovs.artifacts import Artifact, json_dataset, read_json_dataset
+from ptovs.artifacts import Artifact, json_dataset, read_json_dataset, write_atomic
 from ptovs.encoders import Encoder, get_encoder
 from ptovs.errors import InputError
 from ptovs.field.language import CODE_DIM
@@ -335,27 +335,35 @@ def _count(inputs: Inputs, config: Config) -> int:
     return len(resolve_views(config, inputs.scene))
 
 
-def read_results(art: Artifact) -> tuple[dict, dict[str, dict[str, np.ndarray]]]:
-    """(meta, {view name: its datasets}) of a query artifact."""
+def read_results(
+    art: Artifact, keys: tuple[str, ...] | None = None
+) -> tuple[dict, dict[str, dict[str, np.ndarray]]]:
+    """(meta, {view name: its datasets}) of a query artifact (only `keys` if given)."""
     meta = read_json_dataset(art.root()["meta_json"])
-    return meta, {name: art[name] for name in meta["views"] if name in art}
+    return meta, {
+        name: art[name] if keys is None else art.read(name, keys)
+        for name in meta["views"]
+        if name in art
+    }
 
 
 stage_cmd = stage_command(NAME, VERSION, Config, Inputs, run, count=_count)
 
 
-def write_outputs(art: Artifact, scene: Any, out: Path, pictures: bool = True) -> Path:
+def write_outputs(
+    art: Artifact, scene: Any, out: Path, pictures: bool = True
+) -> tuple[Path, list[dict]]:
     """Heatmap, mask and overlay PNGs per (view, query) and results.json under `out`.
 
-    Returns the results JSON path: one record per (view, query) with the score,
-    the level, the mask's pixel count and the picture paths.
+    Returns the results JSON path and its records: one per (view, query) with the
+    score, the level, the mask's pixel count and the picture paths.
     """
     import json
-    import os
 
     from ptovs.visual import heatmap, overlay, slug, write_png
 
-    meta, views = read_results(art)
+    keys = ("mask", "level", "score", "seconds")
+    meta, views = read_results(art, (*keys, "smoothed") if pictures else keys)
     records = []
     for name, data in views.items():
         view = scene.view(name)
@@ -391,14 +399,11 @@ def write_outputs(art: Artifact, scene: Any, out: Path, pictures: bool = True) -
                     }
                 )
             records.append(rec)
-    out.mkdir(parents=True, exist_ok=True)
     path = out / "results.json"
-    tmp = path.with_name(f"results.json.{os.getpid()}.tmp")
-    tmp.write_text(
-        json.dumps({"artifact": str(art.path), "results": records}, indent=1)
+    write_atomic(
+        path, json.dumps({"artifact": str(art.path), "results": records}, indent=1)
     )
-    os.replace(tmp, path)
-    return path
+    return path, records
 
 
 def _command():
@@ -475,15 +480,14 @@ def _command():
         art = execute(chain, NAME, force=force or obj.force)
         try:
             folder = out or obj.work_dir / ref.name / "query-out" / variant
-            path = write_outputs(art, ref.load(), folder, pictures=not no_pictures)
-            meta, views = read_results(art)
-            for name, d in views.items():
-                for qi, text in enumerate(meta["queries"]):
-                    lv = meta["levels"][int(d["level"][qi])]
-                    click.echo(
-                        f"{name}  {text!r}: score {float(d['score'][qi]):.3f} "
-                        f"level {lv}, {int(d['mask'][qi].sum())} px"
-                    )
+            path, records = write_outputs(
+                art, ref.load(), folder, pictures=not no_pictures
+            )
+            for r in records:
+                click.echo(
+                    f"{r['view']}  {r['query']!r}: score {r['score']:.3f} "
+                    f"level {r['level']}, {r['mask_pixels']} px"
+                )
             click.echo(f"query: {art.path}")
             click.echo(f"results: {path}")
         finally:
