@@ -87,6 +87,7 @@ def _stage_seconds(chain, stage: str) -> dict[str, float]:
 def decode_part(work: Path, scene: Path) -> dict:
     import torch
 
+    from ptovs.field.relevancy import answer
     from ptovs.scene import load_labels
     from ptovs.stages.evaluate import pair_metrics
     from ptovs.stages.query import Config, Querier, resolve_queries
@@ -102,12 +103,18 @@ def decode_part(work: Path, scene: Path) -> dict:
     build = time.perf_counter() - t0
     errs, smax, changed, total, t_exact, t_table = [], 0.0, 0, 0, [], []
     ious = {"exact": [], "table": []}
+    qidx = [exact.index[q] for q in queries]
     for view in sc.labelled_views():
-        codes, _ = exact.code_maps(view)
-        errs.append((table.decoder(codes) - exact.decoder(codes)).abs().reshape(-1))
-        t = time.perf_counter()
-        ra = exact.answer_view(view)
+        t = time.perf_counter()  # the exact path, as answer_view runs it, keeping
+        codes, alpha = exact.code_maps(view)  # its cosines for the error figures
+        ce = exact.decoder(codes)
+        support = (alpha >= exact.config.min_alpha).float()
+        ra = [
+            answer(ce, q, exact.canonical, exact.bg, exact.settings, qidx, support)
+            for q in qidx
+        ]
         t_exact.append(time.perf_counter() - t)
+        errs.append((table.decoder(codes) - ce).abs().reshape(-1))
         t = time.perf_counter()
         rb = table.answer_view(view)
         t_table.append(time.perf_counter() - t)

@@ -246,10 +246,7 @@ def _command():
         rows: dict[str, dict[str, dict | None]] = {}
         arts = {}
         for variant in variants or ("male",):
-            try:
-                chain = Chain(obj, ref, variant_sets(variant, split))
-            except KeyError as exc:
-                raise click.UsageError(str(exc.args[0])) from None
+            chain = Chain(obj, ref, variant_sets(variant, split))
             stages = chain.closure(NAME)
             redo = {"query", NAME} if force else set()
             _run_stages(chain, [s for s in stages if s != NAME], redo)

@@ -199,7 +199,6 @@ class Querier:
             idx = [apps.index(a) for a in config.appearances]
             codes, apps = codes[:, :, idx], list(config.appearances)
         self.levels, self.apps = list(meta["levels"]), apps
-        self.codes = codes
         self.colors = codes.reshape(len(codes), -1).contiguous()
         self.gaussians = WildField.from_artifact(inputs.reconstruct).gaussians
         if len(self.gaussians) != len(codes):
@@ -472,11 +471,8 @@ def _command():
             over["views"] = list(view_names)
         ctx = RunContext(obj.work_dir, merge(obj.config, {NAME: over}), obj.force)
         ref = resolve_scene(ctx, scene_name, data)
-        try:
-            split = _split_sets(sets, (*ALL_STAGES, NAME))
-            chain = Chain(ctx, ref, variant_sets(variant, split))
-        except KeyError as exc:
-            raise click.UsageError(str(exc.args[0])) from None
+        split = _split_sets(sets, (*ALL_STAGES, NAME))
+        chain = Chain(ctx, ref, variant_sets(variant, split))
         art = execute(chain, NAME, force=force or obj.force)
         try:
             folder = out or obj.work_dir / ref.name / "query-out" / variant
