@@ -20,21 +20,26 @@ log = logging.getLogger("ptovs")
 
 
 class LazyGroup(click.Group):
-    """Lists stage commands from ptovs.stages.STAGE_MODULES without importing them."""
+    """Lists stage and application commands without importing their modules."""
 
     def list_commands(self, ctx: click.Context) -> list[str]:
+        from ptovs.apps import APP_MODULES
         from ptovs.stages import STAGE_MODULES
 
-        return sorted(set(super().list_commands(ctx)) | set(STAGE_MODULES))
+        return sorted(
+            set(super().list_commands(ctx)) | set(STAGE_MODULES) | set(APP_MODULES)
+        )
 
     def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
         cmd = super().get_command(ctx, name)
         if cmd is not None:
             return cmd
+        from ptovs.apps import APP_MODULES
         from ptovs.stages import STAGE_MODULES
 
-        if name in STAGE_MODULES:
-            return importlib.import_module(STAGE_MODULES[name]).command
+        module = STAGE_MODULES.get(name) or APP_MODULES.get(name)
+        if module is not None:
+            return importlib.import_module(module).command
         return None
 
     def invoke(self, ctx: click.Context) -> object:

@@ -404,7 +404,8 @@ class SyntheticEncoder:
 
     Args:
         vocabulary: path to vocabulary.json, its dict ({"phrases": {phrase:
-            swatch}, "generic": {phrase: [{"weight", "swatch"}]}}), or None
+            swatch}, "generic": {phrase: [{"weight", "swatch"}]}, "styles":
+            {style: [{"weight", "swatch"}]}}), or None
             (generic phrases and "sky" only; other phrases are random).
     """
 
@@ -429,6 +430,9 @@ class SyntheticEncoder:
         self._lower = {k.strip().lower(): v for k, v in self._phrases.items()}
         generic = vocab.get("generic") or generic_vocabulary()
         self._generic = {k.strip().lower(): v for k, v in generic.items()}
+        self._styles: dict[str, list[dict]] = dict(vocab.get("styles", {}))
+        # a style embeds like a generic phrase: a normalised mixture of swatches
+        self._generic.update({k.strip().lower(): v for k, v in self._styles.items()})
         self._cache: dict[str, np.ndarray] = {}
 
     @classmethod
@@ -446,6 +450,11 @@ class SyntheticEncoder:
     def phrases(self) -> list[str]:
         """Phrases with a canonical swatch."""
         return list(self._phrases)
+
+    @property
+    def styles(self) -> list[str]:
+        """The scene's candidate style names (`synthetic.generate.scene_styles`)."""
+        return list(self._styles)
 
     def knows(self, phrase: str) -> bool:
         """Whether the phrase has a swatch (vocabulary, generic mixture or "sky").

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from ptovs.field.ply import write_ply
@@ -27,17 +28,34 @@ def baked_sh(field: WildField, image: str | None = None) -> torch.Tensor:
         return field.sh + field.nets.delta_sh(field.sh, field.gaussians.means, emb)
 
 
-def export_field_ply(art, out: str | Path, image: str | None = None) -> int:
-    """Write the reconstruct artifact's Gaussians to `out`; returns their count."""
-    field = WildField.from_artifact(art)
+def export_field_ply(
+    art,
+    out: str | Path,
+    image: str | None = None,
+    index: np.ndarray | None = None,
+    field: WildField | None = None,
+) -> int:
+    """Write the reconstruct artifact's Gaussians (or those in `index`) to `out`.
+
+    Args:
+        art: the reconstruct artifact.
+        out: the PLY path (written atomically).
+        image: bake this image's appearance (None: the neutral one).
+        index: a bool mask [N] or integer indices of the Gaussians to write
+            (None: all), e.g. a `ptovs select` result.
+        field: the field loaded from `art` already (saves loading it again).
+
+    Returns:
+        The number of Gaussians written.
+    """
+    field = field or WildField.from_artifact(art)
     root = art.root()
     sh = baked_sh(field, image)[:, :16].numpy()  # viewers draw up to degree 3
-    write_ply(
-        out,
-        root["means"],
-        sh,
-        root["opacity_logits"],
-        root["log_scales"],
-        root["quats"],
-    )
-    return len(field)
+    cols = [sh, root["opacity_logits"], root["log_scales"], root["quats"]]
+    means = root["means"]
+    if index is not None:
+        idx = np.asarray(index)
+        idx = np.flatnonzero(idx) if idx.dtype == bool else idx
+        means, cols = means[idx], [c[idx] for c in cols]
+    write_ply(out, means, *cols)
+    return len(means)

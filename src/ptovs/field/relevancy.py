@@ -373,6 +373,56 @@ def finish(
     return QueryResult(sm, level, float(peaks[level]), mask)
 
 
+@dataclass
+class Selection:
+    scores: np.ndarray  # [L, P] float32: fused S_ℓ per Gaussian (0 where invalid)
+    level: int  # ℓ*
+    score: float  # max S at ℓ*
+    mask: np.ndarray  # [P] bool: the selected Gaussians
+
+
+def select(
+    s: Tensor,
+    b: Tensor | None,
+    settings: QuerySettings,
+    valid: Tensor | None = None,
+) -> Selection:
+    """The 3-D query (PAPER_SPEC.md §10.1): per Gaussian instead of per pixel.
+
+    The same background filter, fusion and level choice as `finish`, with the
+    Gaussians in place of pixels (weights w_a from the max over Gaussians), no
+    smoothing and no majority filter (Gaussians have no grid), then the
+    threshold rule over the valid Gaussians. In the code form of the background
+    filter, whose 2-D form damps the box-filtered term, the factor (1 − b)
+    multiplies the score directly.
+
+    Args:
+        s: [L, N, P] relevancy of each Gaussian's code per level and appearance.
+        b: [L, N, P] per-code background probability, or None (filter off).
+        settings: the query knobs (temperature is already applied in s and b).
+        valid: [P] bool, Gaussians that may be selected (trained and opaque
+            enough); the others score 0 and are never selected. None: all.
+    """
+    L, N, P = s.shape  # noqa: N806
+    if valid is None:
+        valid = torch.ones(P, dtype=torch.bool)
+    if P == 0 or not bool(valid.any()):
+        return Selection(np.zeros((L, P), np.float32), 0, 0.0, np.zeros(P, bool))
+    s = s * valid
+    if b is not None:  # [L, P] (paper) or [1, P] (code): broadcast over appearances
+        b = reduce_background(b[..., None], settings.background_filter)[..., 0]
+        s = s * (1.0 - b)[:, None]
+    fused = fuse(s[..., None], settings.fusion)[..., 0].numpy().astype(np.float32)
+    v = valid.numpy()
+    peaks = fused[:, v].max(1)
+    level = int(np.argmax(peaks))
+    mask = np.zeros(P, bool)
+    mask[v] = threshold(fused[level, v], settings.threshold, settings.threshold_mode)
+    if not np.all(np.isfinite(fused)):
+        raise FloatingPointError("select: a fused score is not finite")
+    return Selection(fused, level, float(peaks[level]), mask)
+
+
 def answer(
     cos: Tensor,
     query: int,
@@ -413,6 +463,8 @@ __all__ = [
     "fuse",
     "majority",
     "relevancy",
+    "select",
+    "Selection",
     "smooth",
     "threshold",
 ]

@@ -148,13 +148,17 @@ def read_metrics(art: Artifact) -> tuple[dict, list[dict]]:
     )
 
 
-def markdown_table(rows: dict[str, dict[str, dict | None]]) -> str:
+def markdown_table(
+    rows: dict[str, dict[str, dict | None]], scenes: list[str] | None = None
+) -> str:
     """Rows {variant: {scene: summary or None}} → Markdown, with a mean column.
 
-    A scene whose summary is None (failed) shows as "failed"; the mean is over
-    the scenes that have numbers, marked with * when some failed.
+    A scene whose summary is None (failed) shows as "failed", a scene of
+    `scenes` absent from a row as "–" (not run); the mean is over the scenes
+    that have numbers, marked with * when some are missing.
     """
-    scenes = list(dict.fromkeys(s for r in rows.values() for s in r))
+    if scenes is None:
+        scenes = list(dict.fromkeys(s for r in rows.values() for s in r))
     head = "| variant | " + " | ".join(scenes) + " | mean |"
     lines = [
         "mIoU / mPA / mP per scene (pairs: (image, category); empty prediction: "

@@ -45,9 +45,11 @@ from ptovs.field.relevancy import (
     CANONICAL,
     PhraseDecoder,
     QuerySettings,
+    Selection,
     answer,
     finish,
     score_maps,
+    select,
 )
 from ptovs.field.render import WildField
 from ptovs.raster import Camera, render
@@ -200,7 +202,8 @@ class Querier:
             codes, apps = codes[:, :, idx], list(config.appearances)
         self.levels, self.apps = list(meta["levels"]), apps
         self.colors = codes.reshape(len(codes), -1).contiguous()
-        self.gaussians = WildField.from_artifact(inputs.reconstruct).gaussians
+        self.field = WildField.from_artifact(inputs.reconstruct)
+        self.gaussians = self.field.gaussians
         if len(self.gaussians) != len(codes):
             raise InputError(
                 f"query: train-male holds {len(codes)} Gaussians, reconstruct "
@@ -230,10 +233,10 @@ class Querier:
     @torch.no_grad()
     def code_maps(self, view) -> tuple[torch.Tensor, torch.Tensor]:
         """[L, A, H, W, 3] rendered codes (not renormalised, PAPER_SPEC.md §8) and
-        the [H, W] accumulated opacity."""
+        the [H, W] accumulated opacity, for a scene view or a `Camera`."""
         out = render(
             self.gaussians,
-            Camera.from_view(view),
+            view if isinstance(view, Camera) else Camera.from_view(view),
             self.colors,
             depth=False,
             backend=self.config.backend,
@@ -260,6 +263,29 @@ class Querier:
             )
             self._tables[key] = torch.stack([s] if b is None else [s, b]).contiguous()
         return self._tables[key]
+
+    @torch.no_grad()
+    def select(self, query: str, min_opacity: float = 0.0) -> Selection:
+        """The 3-D query: decode every Gaussian's codes (no rendering) and select.
+
+        Gaussians train-male never saw (zero codes) and those less opaque than
+        `min_opacity` are never selected; see `ptovs.field.relevancy.select`.
+        """
+        q = self.index[query]
+        n = len(self.colors)
+        codes = self.colors.reshape(n, len(self.levels), len(self.apps), CODE_DIM)
+        valid = codes.flatten(1).abs().amax(1) > 0
+        if min_opacity > 0:
+            valid &= self.gaussians.opacities.reshape(-1) >= min_opacity
+        codes = codes.permute(1, 2, 0, 3)  # [L, A, P, 3]
+        if self.config.decode == "exact":
+            s, b = score_maps(
+                self.decoder(codes), q, self.canonical, self.bg, self.settings, [q]
+            )
+        else:
+            vals = self.decoder.lookup(codes, self.query_table(q, (q,)))
+            s, b = vals[..., 0], (vals[..., 1] if vals.shape[-1] > 1 else None)
+        return select(s, b, self.settings, valid)
 
     def answer_view(self, view, queries: list[str] | None = None):
         codes, alpha = self.code_maps(view)

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 from tqdm import tqdm
 
 from ptovs.synthetic.world import (
@@ -49,6 +50,22 @@ from ptovs.synthetic.world import (
 logger = logging.getLogger(__name__)
 
 TRUTH_VERSION = 1
+STYLES = (
+    "Neoclassical",
+    "Gothic",
+    "Baroque",
+    "Romanesque",
+    "Byzantine",
+    "Renaissance",
+    "Georgian",
+    "Palladian",
+    "Moorish",
+    "Art Deco",
+    "Victorian Gothic",
+    "Edwardian Baroque",
+)
+"""Style names the generator gives landmarks (`scene_styles`)."""
+N_STYLES = 5  # candidates per scene, as the paper's LLM proposes
 # q95 without chroma subsampling: at ~96 px, 4:2:0 visibly smears part colours
 _JPEG = [
     cv2.IMWRITE_JPEG_QUALITY,
@@ -391,6 +408,46 @@ def scene_vocabulary(world: World, preset: Preset, distractors: list[str]) -> di
     }
 
 
+def landmark_look(world: World, preset: Preset) -> list[dict]:
+    """A landmark's whole look as a mixture of swatches (a style's text side).
+
+    Each part's canonical swatch (its texture under neutral light, as its own
+    phrase has) weighted by the square of the part's characteristic extent, a
+    proxy for its share of the landmark's surface; weights sum to 1. The
+    stand-in encoder embeds a style as the normalised weighted sum of these
+    swatches' content vectors, so a style matches the look of the landmark it
+    was drawn from and no single part of it exactly.
+    """
+    w = np.array([p.size**2 for p in world.parts], float)
+    w = w / w.sum()
+    return [
+        {
+            "weight": round(float(wi), 6),
+            "swatch": part_swatch(world, p, preset.swatch_px),
+        }
+        for wi, p in zip(w, world.parts, strict=True)
+    ]
+
+
+def scene_styles(preset: Preset, seed: int, world: World) -> tuple[str, dict]:
+    """(true style, {candidate style: mixture}) of a seed's landmark.
+
+    Five names are drawn from STYLES (own random stream, so worlds, cameras and
+    labels of existing seeds are unchanged); the first is this landmark's style,
+    bound to its look (`landmark_look`); each other one is bound to the look of
+    the landmark of another seed of the same preset (seed + 7919·k), a
+    distractor that looks like a real landmark that is not this one. The
+    vocabulary lists the candidates sorted by name, so nothing in it says which
+    is true; truth/parts.json does.
+    """
+    rng = _rng(seed, 8)
+    names = [STYLES[i] for i in rng.permutation(len(STYLES))[:N_STYLES]]
+    styles = {names[0]: landmark_look(world, preset)}
+    for k, name in enumerate(names[1:], start=1):
+        styles[name] = landmark_look(_world(preset, seed + 7919 * k), preset)
+    return names[0], dict(sorted(styles.items()))
+
+
 # ---------------------------------------------------------------- planning --
 
 
@@ -472,10 +529,14 @@ def _write_json(path: Path, obj) -> None:
 # ------------------------------------------------------------------ generate --
 
 
+def _world(cfg: Preset, seed: int) -> World:
+    rng = _rng(seed, 0)
+    return build_world(rng, int(rng.integers(cfg.n_parts[0], cfg.n_parts[1] + 1)))
+
+
 def _plan(cfg: Preset, seed: int):
     """World, test ids, stems, cameras, eval ids, queries and distractor of a seed."""
-    rng = _rng(seed, 0)
-    world = build_world(rng, int(rng.integers(cfg.n_parts[0], cfg.n_parts[1] + 1)))
+    world = _world(cfg, seed)
     n_img = cfg.n_train + cfg.n_test
     plan = _rng(seed, 1)
     test_ids = set(plan.choice(n_img, cfg.n_test, replace=False).tolist())
@@ -638,12 +699,15 @@ def generate_scene(
         for r in records:
             f.write(f"{r['name']}\t{r['image_id']}\t{r['split']}\t{name}\n")
     vocab = scene_vocabulary(world, cfg, [distractor])
+    style, vocab["styles"] = scene_styles(cfg, seed, world)
     _write_json(scene / "synthetic" / "vocabulary.json", vocab)
     parts = world.to_dict()
     parts.update(
         queries=list(queries) + [distractor],
         query_parts=queries,
         distractors=[distractor],
+        style=style,
+        style_candidates=list(vocab["styles"]),
         preset=preset,
         seed=seed,
         version=TRUTH_VERSION,
@@ -765,6 +829,42 @@ def load_truth(scene_dir: Path) -> tuple[World, dict]:
     world = World.from_dict(json.loads((truth / "parts.json").read_text()))
     cameras = json.loads((truth / "cameras.json").read_text())
     return world, cameras
+
+
+def nearest_parts(
+    scene_dir: Path, xyz: np.ndarray, max_dist: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The world's part at each 3-D point: that of the nearest truth surface sample.
+
+    Args:
+        scene_dir: a generated scene (reads synthetic/truth/points3D.npz: points
+            on visible surfaces with their part ids, -1 = ground).
+        xyz: [N, 3] points, e.g. Gaussian centres.
+        max_dist: points farther than this from every sample get -2 (nowhere);
+            default 2 % of the landmark's bounding radius.
+
+    Returns:
+        part ids [N] int16 and distances [N] float32.
+    """
+    truth = Path(scene_dir) / "synthetic" / "truth"
+    pts = np.load(truth / "points3D.npz")
+    ref = torch.from_numpy(pts["xyz"].astype(np.float32))
+    part = pts["part_id"].astype(np.int16)
+    if max_dist is None:
+        world = World.from_dict(json.loads((truth / "parts.json").read_text()))
+        max_dist = 0.02 * world.radius
+    q = torch.from_numpy(np.asarray(xyz, np.float32))
+    ids = np.empty(len(q), np.int64)
+    dist = np.empty(len(q), np.float32)
+    for a in range(0, len(q), 4096):
+        d = torch.cdist(q[a : a + 4096], ref)
+        best = d.min(1)
+        ids[a : a + 4096], dist[a : a + 4096] = (
+            best.indices.numpy(),
+            best.values.numpy(),
+        )
+    out = part[ids] if len(ref) else np.full(len(q), -2, np.int16)
+    return np.where(dist <= max_dist, out, np.int16(-2)).astype(np.int16), dist
 
 
 def rerender(

@@ -1,0 +1,285 @@
+"""A roaming video through the scene with a query's region highlighted.
+
+    ptovs roam --data data/bench_s0 "Rose Window" --out tour.mp4 [--frames 90]
+
+The path: the train cameras ordered by azimuth around the scene (about the mean
+"up" of the cameras), `--keyframes` of them evenly spaced in that order, camera
+centres on a Catmull-Rom spline through the keyframes and rotations slerped
+between them (pycolmap's pose interpolation), intrinsics from the median field
+of view at the chosen frame size. Each frame renders the field under one
+appearance (an image's embedding or the neutral mean) and highlights the text:
+"select" (default) renders the 3-D selection of `ptovs select` as a mask, so the
+region is the same object in every frame; "query" answers the text per frame
+like `ptovs query` (its relative threshold always marks something). The mask is
+tinted and its Canny edges drawn at α = 0.5 (PAPER_SPEC.md §10), the text in a
+bar under the frame. Written with OpenCV's VideoWriter (mp4v), atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import click
+import cv2
+import numpy as np
+import torch
+
+from ptovs.apps import trained_chain, variant_option
+from ptovs.errors import InputError
+from ptovs.raster import Camera
+from ptovs.stage import RunContext, scene_options
+
+EDGE_BGR = (0, 230, 255)
+FILL_BGR = (40, 80, 255)
+
+
+def _centre(view) -> np.ndarray:
+    T = np.asarray(view.cam_from_world, float)  # noqa: N806
+    return -T[:3, :3].T @ T[:3, 3]
+
+
+def pick_keyframes(views: list, k: int, target: np.ndarray) -> list:
+    """`k` views evenly spaced in azimuth order around `target`."""
+    if len(views) < 2:
+        raise InputError("roam: the scene needs at least two train views")
+    up = -np.mean([np.asarray(v.cam_from_world)[1, :3] for v in views], 0)
+    up /= np.linalg.norm(up) + 1e-12
+    e1 = np.cross(up, [1.0, 0.0, 0.0])
+    if np.linalg.norm(e1) < 1e-6:
+        e1 = np.cross(up, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    rel = np.stack([_centre(v) - target for v in views])
+    az = np.arctan2(rel @ e2, rel @ e1)
+    order = [views[i] for i in np.argsort(az, kind="stable")]
+    k = max(2, min(k, len(order)))
+    return [order[i] for i in np.round(np.linspace(0, len(order) - 1, k)).astype(int)]
+
+
+def _catmull_rom(p: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Points at parameters s ∈ [0, len(p) − 1] on the uniform Catmull-Rom spline
+    through p (ends extended by reflection)."""
+    q = np.concatenate([2 * p[:1] - p[1:2], p, 2 * p[-1:] - p[-2:-1]])
+    i = np.minimum(np.floor(s).astype(int), len(p) - 2)
+    t = (s - i)[:, None]
+    p0, p1, p2, p3 = q[i], q[i + 1], q[i + 2], q[i + 3]
+    return 0.5 * (
+        2 * p1
+        + (p2 - p0) * t
+        + (2 * p0 - 5 * p1 + 4 * p2 - p3) * t**2
+        + (3 * p1 - p0 - 3 * p2 + p3) * t**3
+    )
+
+
+def camera_path(keys: list, frames: int, width: int, height: int) -> list[Camera]:
+    """`frames` cameras along the keyframes (see the module doc)."""
+    import pycolmap
+
+    if frames < 1:
+        raise InputError("roam: --frames must be at least 1")
+    s = np.linspace(0.0, len(keys) - 1, frames)
+    centres = _catmull_rom(np.stack([_centre(v) for v in keys]), s)
+    poses = [
+        pycolmap.Rigid3d(
+            pycolmap.Rotation3d(np.asarray(v.cam_from_world)[:3, :3]),
+            np.asarray(v.cam_from_world)[:3, 3],
+        )
+        for v in keys
+    ]
+    fov_x = np.median([v.K[0, 0] / v.width for v in keys])
+    fov_y = np.median([v.K[1, 1] / v.height for v in keys])
+    f = 0.5 * (fov_x * width + fov_y * height)
+    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], float)  # noqa: N806
+    cams = []
+    for si, c in zip(s, centres, strict=True):
+        i = min(int(np.floor(si)), len(keys) - 2)
+        pose = pycolmap.interpolate_camera_poses(poses[i], poses[i + 1], float(si - i))
+        R = np.asarray(pose.rotation.matrix())  # noqa: N806
+        T = np.eye(4)  # noqa: N806
+        T[:3, :3], T[:3, 3] = R, -R @ c
+        cams.append(
+            Camera(
+                cam_from_world=torch.tensor(T, dtype=torch.float32),
+                K=torch.tensor(K, dtype=torch.float32),
+                width=int(width),
+                height=int(height),
+            )
+        )
+    return cams
+
+
+def highlight(rgb: np.ndarray, mask: np.ndarray, text: str, bar: int) -> np.ndarray:
+    """BGR uint8 frame: the region tinted, its Canny edges blended at α = 0.5, and
+    the text in a bar under the frame."""
+    img = cv2.cvtColor(
+        (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR
+    )
+    m = mask.astype(bool)
+    if m.any():
+        f = img.astype(np.float32)
+        f[m] = 0.7 * f[m] + 0.3 * np.asarray(FILL_BGR, np.float32)
+        edges = cv2.Canny(m.astype(np.uint8) * 255, 100, 200) > 0
+        edges = cv2.dilate(edges.astype(np.uint8), np.ones((2, 2), np.uint8)) > 0
+        f[edges] = 0.5 * f[edges] + 0.5 * np.asarray(EDGE_BGR, np.float32)
+        img = f.astype(np.uint8)
+    strip = np.full((bar, img.shape[1], 3), 24, np.uint8)
+    fs = max(0.35, bar / 40)
+    cv2.putText(strip, text, (6, bar - 7), cv2.FONT_HERSHEY_SIMPLEX, fs,
+                (255, 255, 255), 1, cv2.LINE_AA)  # fmt: skip
+    return np.vstack((img, strip))
+
+
+def roam_frames(
+    chain,
+    text: str,
+    cams: list[Camera],
+    image: str | None = None,
+    mode: str = "select",
+    progress: bool = True,
+):
+    """Yield (rgb [H, W, 3] float, mask [H, W] bool) per camera."""
+    from tqdm import tqdm
+
+    from ptovs.raster import render
+    from ptovs.stages.query import Querier
+
+    inputs = chain.inputs("query")
+    try:
+        querier = Querier(inputs, chain.config("query"), [text])
+        field = querier.field
+        emb = None
+        if field.wild and field.embeddings:
+            emb = (
+                field.embeddings_of([image])
+                if image is not None
+                else torch.stack(list(field.embeddings.values())).mean(0, keepdim=True)
+            )
+        chosen = None
+        if mode == "select":
+            sel = querier.select(text)
+            if not sel.mask.any():
+                raise InputError(
+                    f"roam: {text!r} selects no Gaussian; try --highlight query"
+                )
+            chosen = torch.from_numpy(sel.mask.astype(np.float32))[:, None]
+        elif mode != "query":
+            raise ValueError(f"highlight must be select or query, got {mode!r}")
+        for cam in tqdm(cams, desc="roam", unit="frame", disable=not progress):
+            rgb = field.render(cam, emb)[0].numpy()
+            if chosen is not None:
+                out = render(field.gaussians, cam, chosen, depth=False)
+                alpha = out.alpha[..., 0].clamp_min(1e-6)
+                mask = (out.image[..., 0] / alpha > 0.5) & (out.alpha[..., 0] > 0.5)
+                mask = mask.numpy()
+            else:
+                mask = querier.answer_view(cam)[0].mask
+            yield rgb, mask
+    finally:
+        for art in (inputs.reconstruct, inputs.ae, inputs.male):
+            art.close()
+
+
+def write_video(path: Path, frames, fps: float) -> int:
+    """Write BGR frames to `path` (mp4v) through a temporary file; returns the count."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    writer = None
+    n = 0
+    try:
+        for frame in frames:
+            if writer is None:
+                h, w = frame.shape[:2]
+                writer = cv2.VideoWriter(
+                    str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h)
+                )
+                if not writer.isOpened():
+                    raise InputError(
+                        f"roam: OpenCV cannot write {path.suffix} video here; try --out tour.avi"
+                    )
+            writer.write(frame)
+            n += 1
+    finally:
+        if writer is not None:
+            writer.release()
+    if n == 0:
+        tmp.unlink(missing_ok=True)
+        raise InputError("roam: no frames rendered")
+    tmp.replace(path)
+    return n
+
+
+@click.command(name="roam")
+@click.argument("text")
+@scene_options
+@click.option("--out", type=click.Path(path_type=Path), required=True,
+              help="Video file (.mp4 or .avi).")  # fmt: skip
+@click.option("--frames", type=click.IntRange(1), default=90, show_default=True)
+@click.option("--fps", type=click.FloatRange(1.0), default=15.0, show_default=True)
+@click.option("--size", default="320x240", show_default=True, metavar="WxH",
+              help="Frame size in pixels (the text bar is added below).")  # fmt: skip
+@click.option("--keyframes", type=click.IntRange(2), default=8, show_default=True,
+              help="Train cameras the path passes through.")  # fmt: skip
+@click.option("--image", default=None,
+              help="Render under this image's appearance (default: neutral).")  # fmt: skip
+@click.option("--highlight", "mode", type=click.Choice(["select", "query"]),
+              default="select", show_default=True,
+              help="select: the 3-D selection, rendered; query: a 2-D query per frame.")  # fmt: skip
+@variant_option
+@click.pass_obj
+def command(
+    obj: RunContext,
+    text: str,
+    scene_name: str | None,
+    data: Path | None,
+    out: Path,
+    frames: int,
+    fps: float,
+    size: str,
+    keyframes: int,
+    image: str | None,
+    mode: str,
+    variant: str,
+    sets: tuple[str, ...],
+) -> None:
+    """Render a video along a smooth path through the train cameras, TEXT highlighted.
+
+    Runs any missing stage of the chain first; writes the video and <out>.json
+    (frames, size, frames per second of rendering).
+    """
+    from ptovs.artifacts import write_atomic
+
+    try:
+        width, height = (int(x) for x in size.lower().split("x"))
+        if width < 8 or height < 8:
+            raise ValueError
+    except ValueError:
+        raise click.BadParameter(f"{size!r}: write WIDTHxHEIGHT, e.g. 320x240",
+                                 param_hint="--size") from None  # fmt: skip
+    chain, ref = trained_chain(obj, scene_name, data, variant, sets)
+    scene = ref.load()
+    target = np.median(scene.points_xyz, 0) if len(scene.points_xyz) else np.zeros(3)
+    keys = pick_keyframes(scene.train_views(), keyframes, target)
+    cams = camera_path(keys, frames, width, height)
+    bar = max(18, height // 10)
+    label = f"{text}  ({ref.name})"
+    t0 = time.perf_counter()
+    n = write_video(
+        out,
+        (
+            highlight(rgb, m, label, bar)
+            for rgb, m in roam_frames(chain, text, cams, image, mode)
+        ),
+        fps,
+    )
+    seconds = time.perf_counter() - t0
+    record = {
+        "scene": ref.name, "text": text, "frames": n, "width": width,
+        "height": height + bar, "fps": fps, "highlight": mode,
+        "keyframes": [v.name for v in keys], "seconds": round(seconds, 2),
+        "render_fps": round(n / seconds, 2), "video": str(out),
+    }  # fmt: skip
+    write_atomic(out.with_suffix(".json"), json.dumps(record, indent=1))
+    click.echo(f"roam {text!r}: {n} frames {width}x{height + bar} at {n / seconds:.1f} "
+               f"frames/s -> {out}")  # fmt: skip

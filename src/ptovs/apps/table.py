@@ -1,0 +1,112 @@
+"""The per-scene and mean table over every scene under a data folder (Table 1 style).
+
+    ptovs table --data data [--variant male --variant langsplat] [--out work/table.md]
+
+For each scene folder under --data (the PT-OVS `label` folder is not a scene)
+and each variant, reads that chain's `evaluate` artifact from the store if it
+exists; it runs nothing. A scene without one is marked "failed" when its
+`<work>/<scene>/FAILED` marker exists (the Makefile's batch target writes it
+when a stage fails, with the log's tail) and "–" (not run) otherwise; the mean
+column is over the scenes with numbers and starred when some are missing.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+from ptovs.stage import RunContext
+
+FAILED_MARKER = "FAILED"
+
+
+def scene_folders(data: Path) -> list[Path]:
+    return sorted(
+        p for p in Path(data).iterdir() if p.is_dir() and p.name != "label"
+        and not p.name.startswith(".")
+    )  # fmt: skip
+
+
+def collect(
+    obj: RunContext, data: Path, variants: tuple[str, ...]
+) -> tuple[dict, dict]:
+    """({variant: {scene: summary or None}}, {scene: failure text})."""
+    from ptovs.errors import InputError, MissingInputError
+    from ptovs.stage import Chain, resolve_scene
+    from ptovs.stages.evaluate import read_metrics
+    from ptovs.variants import variant_sets
+
+    rows: dict[str, dict] = {v: {} for v in variants}
+    failures: dict[str, str] = {}
+    for folder in scene_folders(data):
+        name = folder.name
+        marker = obj.work_dir / name / FAILED_MARKER
+        if marker.is_file():
+            failures[name] = marker.read_text().strip().splitlines()[-1:] or ["failed"]
+            failures[name] = failures[name][0]
+        for variant in variants:
+            summary = None
+            try:
+                ref = resolve_scene(obj, name, folder)
+                art = obj.store.lookup(
+                    name,
+                    "evaluate",
+                    Chain(obj, ref, variant_sets(variant, {})).key("evaluate"),
+                )
+            except (InputError, MissingInputError, OSError, ValueError) as exc:
+                failures.setdefault(name, str(exc).splitlines()[0])
+                art = None
+            if art is not None:
+                try:
+                    summary, _ = read_metrics(art)
+                finally:
+                    art.close()
+            if summary is not None or name in failures:
+                rows[variant][name] = summary  # None shows as "failed"
+    return rows, failures
+
+
+@click.command(name="table")
+@click.option("--data", type=click.Path(path_type=Path, file_okay=False), required=True,
+              help="Folder of scene folders (e.g. the seven PT-OVS scenes).")  # fmt: skip
+@click.option("--variant", "variants", multiple=True, default=("male",),
+              show_default=True, help="Variant rows (repeatable).")  # fmt: skip
+@click.option("--out", type=click.Path(path_type=Path), default=None,
+              help="Also write the table here (Markdown) and <out>.json.")  # fmt: skip
+@click.option("--strict", is_flag=True,
+              help="Exit with status 1 when a scene has no numbers.")  # fmt: skip
+@click.pass_obj
+def command(obj: RunContext, data: Path, variants: tuple[str, ...], out: Path | None,
+            strict: bool) -> None:  # fmt: skip
+    """Print mIoU / mPA / mP per scene and their mean, one row per variant.
+
+    Reads the evaluate artifacts the pipeline wrote for every scene under
+    --data; runs nothing (use `make -j3 all DATA=...` or `ptovs evaluate`).
+    """
+    from ptovs.artifacts import write_atomic
+    from ptovs.stages.evaluate import markdown_table
+
+    if not data.is_dir():
+        raise click.BadParameter(f"{data} is not a folder", param_hint="--data")
+    if not scene_folders(data):
+        raise click.ClickException(f"no scene folders under {data}")
+    rows, failures = collect(obj, data, variants)
+    scenes = [f.name for f in scene_folders(data)]
+    table = markdown_table(rows, scenes)
+    if failures:
+        table += (
+            "\n"
+            + "\n".join(f"- {s}: failed ({why})" for s, why in failures.items())
+            + "\n"
+        )
+    click.echo(table)
+    if out is not None:
+        write_atomic(out, table)
+        write_atomic(out.with_suffix(".json"),
+                     json.dumps({"results": rows, "failed": failures}, indent=1))  # fmt: skip
+        click.echo(f"table: {out}")
+    missing = [s for s in scenes if any(r.get(s) is None for r in rows.values())]
+    if strict and missing:
+        raise SystemExit(1)

@@ -1,0 +1,289 @@
+"""Applications (issue: select, style, roam, batch): PLY selection, style votes,
+roaming video, the per-scene table over a data folder."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from conftest import RECON, copy_work
+from ptovs.cli import main
+from ptovs.field import relevancy as rel
+from ptovs.field.ply import read_ply
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def app_work(tmp_path_factory, trained_work):
+    return copy_work(trained_work[0], tmp_path_factory.mktemp("apps") / "work")
+
+
+def _cli(work: Path, *args: str):
+    return CliRunner().invoke(main, ["--work-dir", str(work), *RECON, *args])
+
+
+# --------------------------------------------------------- select (unit) --
+
+
+def test_select_reduces_to_the_single_map_and_respects_valid():
+    g = torch.Generator().manual_seed(0)
+    s = torch.rand(3, 1, 50, generator=g)
+    valid = torch.ones(50, dtype=torch.bool)
+    valid[:10] = False
+    settings = rel.QuerySettings(background_filter="off")
+    out = rel.select(s, None, settings, valid)
+    assert not out.mask[:10].any()
+    assert np.all(out.scores[:, :10] == 0)
+    level = int(torch.argmax((s[:, 0] * valid).amax(1)))
+    assert out.level == level
+    sl = s[level, 0, 10:].numpy()
+    n = (sl - sl.min()) / (sl.max() - sl.min())
+    assert np.array_equal(out.mask[10:], 2 * n - 1 > 0.4)
+
+
+def test_select_background_and_fusion_match_the_pixel_pipeline():
+    """Gaussians in place of pixels: the same weights and filter as `finish`."""
+    g = torch.Generator().manual_seed(1)
+    s = torch.rand(2, 4, 30, generator=g)
+    b = torch.rand(2, 4, 30, generator=g)
+    settings = rel.QuerySettings(smooth_kernel=1, majority=1)
+    got = rel.select(s, b, settings)
+    ref = rel.finish(s[..., None], b[..., None], settings)  # a 30 × 1 "image"
+    assert np.allclose(got.scores, ref.smoothed[..., 0], atol=1e-6)
+    assert got.level == ref.level
+    assert np.array_equal(got.mask, ref.mask[:, 0])
+
+
+def test_select_hard_cases_are_finite_and_empty_when_nothing_is_valid():
+    s = torch.tensor([[[0.0, 1e30, float("nan"), 0.5]]]).clamp(0, 1).nan_to_num(0.5)
+    out = rel.select(s, None, rel.QuerySettings(background_filter="off"))
+    assert np.isfinite(out.scores).all() and out.mask.any()
+    const = rel.select(torch.full((2, 2, 9), 0.3), None, rel.QuerySettings())
+    assert not const.mask.any()  # a constant score selects nothing
+    none = rel.select(torch.rand(1, 1, 5), None, rel.QuerySettings(),
+                      torch.zeros(5, dtype=torch.bool))  # fmt: skip
+    assert not none.mask.any() and none.score == 0.0
+    empty = rel.select(torch.zeros(2, 1, 0), None, rel.QuerySettings())
+    assert empty.mask.shape == (0,)
+
+
+# ---------------------------------------------------------- select (CLI) --
+
+
+def test_select_ply_holds_exactly_the_selected_gaussians(
+    app_work, tiny_scene_dir, tmp_path
+):
+    from ptovs.apps.select import select_gaussians
+    from ptovs.stage import Chain, RunContext, resolve_scene
+
+    out, rest = tmp_path / "sel.ply", tmp_path / "rest.ply"
+    res = _cli(app_work, "select", "Brick Facade", "--data", str(tiny_scene_dir),
+               "--out", str(out), "--rest", str(rest))  # fmt: skip
+    assert res.exit_code == 0, res.output + repr(res.exception)
+    rec = json.loads(out.with_suffix(".json").read_text())
+    sel, rst = read_ply(out), read_ply(rest)
+    assert len(sel["means"]) == rec["selected"] > 0
+    assert len(sel["means"]) + len(rst["means"]) == rec["gaussians"]
+    assert f"{rec['selected']} of {rec['gaussians']} Gaussians" in res.output
+    # the very Gaussians the selection chose, in order, with their parameters
+    from ptovs.config import parse_sets
+
+    sets = parse_sets([r.split("=", 1)[1] for r in RECON])  # "--set=a.b=c" → a.b=c
+    ctx = RunContext(app_work, sets, False)
+    chain = Chain(ctx, resolve_scene(ctx, None, tiny_scene_dir))
+    selection, querier, inputs = select_gaussians(chain, "Brick Facade")
+    means = inputs.reconstruct.root()["means"]
+    for art in (inputs.reconstruct, inputs.ae, inputs.male):
+        art.close()
+    assert np.array_equal(sel["means"], means[selection.mask].astype(np.float32))
+    assert np.array_equal(rst["means"], means[~selection.mask].astype(np.float32))
+    assert np.isfinite(sel["sh"]).all() and sel["sh"].shape[1] == 16
+
+
+def test_nearest_parts_reads_the_world_truth(tiny_scene_dir):
+    """The truth `select` is scored against (docs/benchmarks.md): each truth
+    sample maps to its own part, a point far from every surface to -2."""
+    from ptovs.synthetic.generate import nearest_parts
+
+    pts = np.load(tiny_scene_dir / "synthetic/truth/points3D.npz")
+    pid, dist = nearest_parts(tiny_scene_dir, pts["xyz"][::7])
+    assert np.array_equal(pid, pts["part_id"][::7]) and np.all(dist < 1e-5)
+    far, _ = nearest_parts(tiny_scene_dir, np.array([[1e3, 1e3, 1e3]]))
+    assert far.tolist() == [-2]
+
+
+def test_empty_selection_is_a_clear_error_and_writes_nothing(
+    app_work, tiny_scene_dir, tmp_path
+):
+    out = tmp_path / "none.ply"
+    res = _cli(app_work, "select", "Brick Facade", "--data", str(tiny_scene_dir),
+               "--out", str(out), "--set", "query.threshold=1.0")  # fmt: skip
+    assert res.exit_code != 0
+    assert "no Gaussian" in res.output and "nothing written" in res.output
+    assert not out.exists()
+    res = _cli(app_work, "select", "Hanging Gardens", "--data", str(tiny_scene_dir),
+               "--out", str(out))  # fmt: skip
+    assert res.exit_code != 0 and "vocabulary" in res.output
+
+
+# ------------------------------------------------------------------ style --
+
+
+def test_style_vocabulary_describes_the_whole_landmark(tiny_scene_dir):
+    """The true style's text side is the landmark's look: the stand-in encoder,
+    shown the landmark alone (its mask over the photo), prefers it over the
+    distractor styles (other seeds' landmarks) in most photos."""
+    from ptovs.encoders import prepare_crop
+    from ptovs.encoders.synthetic import SyntheticEncoder
+
+    truth = json.loads((tiny_scene_dir / "synthetic/truth/parts.json").read_text())
+    enc = SyntheticEncoder.from_scene(tiny_scene_dir)
+    assert sorted(enc.styles) == enc.styles == truth["style_candidates"]
+    assert truth["style"] in enc.styles and len(enc.styles) == 5
+    text = enc.encode_texts(enc.styles)
+    wins = []
+    for jpg in sorted((tiny_scene_dir / "dense/images").glob("*.jpg")):
+        img = cv2.cvtColor(cv2.imread(str(jpg)), cv2.COLOR_BGR2RGB) / 255.0
+        part = np.load(tiny_scene_dir / "synthetic/truth" / f"{jpg.stem}.npz")[
+            "part_id"
+        ]
+        crop = prepare_crop(img.astype(np.float32), part >= 0)
+        wins.append(enc.styles[int(np.argmax(enc.encode_images(crop[None]) @ text.T))])
+    assert wins.count(truth["style"]) > len(wins) / 2
+
+
+def test_style_votes_table_json_and_pictures(app_work, tiny_scene_dir, tmp_path):
+    out = tmp_path / "style"
+    res = _cli(app_work, "style", "--data", str(tiny_scene_dir), "--images", "6",
+               "--pictures", "2", "--out", str(out))  # fmt: skip
+    assert res.exit_code == 0, res.output + repr(res.exception)
+    rec = json.loads((out / "style.json").read_text())
+    truth = json.loads((tiny_scene_dir / "synthetic/truth/parts.json").read_text())
+    assert rec["candidates"] == truth["style_candidates"]
+    assert len(rec["views"]) == 6 and sum(rec["votes"].values()) == 6
+    assert rec["winner"] == rec["ranking"][0] and set(rec["ranking"]) == set(
+        rec["votes"]
+    )
+    for v in rec["views"]:  # each view voted for its highest value (ties: first)
+        vals = [v["values"][s] for s in rec["candidates"]]
+        assert v["vote"] == rec["candidates"][int(np.argmax(vals))]
+    assert len(rec["pictures"]) == 2 and all(Path(p).is_file() for p in rec["pictures"])
+    assert "| style | votes | share |" in res.output
+    # the same again gives the same votes (seeded views, deterministic pipeline)
+    res2 = _cli(app_work, "style", "--data", str(tiny_scene_dir), "--images", "6",
+                "--pictures", "0", "--out", str(tmp_path / "again"))  # fmt: skip
+    assert (
+        json.loads((tmp_path / "again/style.json").read_text())["votes"] == rec["votes"]
+    )
+    assert res2.exit_code == 0
+
+
+def test_style_vote_rules():
+    from ptovs.apps.style import vote_of
+    from ptovs.stages.query import Config
+
+    r = [rel.QueryResult(np.zeros((1, 2, 2), np.float32), 0, 0.5, np.zeros((2, 2), bool)),
+         rel.QueryResult(np.ones((1, 2, 2), np.float32), 0, 0.5, np.ones((2, 2), bool))]  # fmt: skip
+    assert vote_of(r, ["A", "B"], "max_score", Config())[0] == "A"  # tie: first
+    sm = np.zeros((1, 2, 2), np.float32)
+    sm[0, 0, 0] = 1.0
+    r[1] = rel.QueryResult(sm, 0, 0.5, sm[0] > 0)
+    winner, counts = vote_of(r, ["A", "B"], "pixel_count", Config())
+    assert winner == "B" and counts == [0.0, 1.0]  # a constant map has no positives
+
+
+def test_style_needs_candidates_on_a_real_scene(app_work, scene_copy):
+    shutil.rmtree(scene_copy / "synthetic")
+    res = _cli(app_work, "style", "--data", str(scene_copy))
+    assert res.exit_code != 0
+
+
+# ------------------------------------------------------------------- roam --
+
+
+def test_roam_writes_the_requested_frames(app_work, tiny_scene_dir, tmp_path):
+    out = tmp_path / "tour.mp4"
+    res = _cli(app_work, "roam", "Brick Facade", "--data", str(tiny_scene_dir),
+               "--out", str(out), "--frames", "12", "--size", "96x64")  # fmt: skip
+    assert res.exit_code == 0, res.output + repr(res.exception)
+    cap = cv2.VideoCapture(str(out))
+    frames = []
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        frames.append(frame)
+    cap.release()
+    rec = json.loads(out.with_suffix(".json").read_text())
+    assert len(frames) == 12 == rec["frames"]
+    assert frames[0].shape[:2] == (rec["height"], 96)
+    res = _cli(app_work, "roam", "Brick Facade", "--data", str(tiny_scene_dir),
+               "--out", str(out), "--size", "nope")  # fmt: skip
+    assert res.exit_code != 0 and "WIDTHxHEIGHT" in res.output
+
+
+def test_camera_path_passes_through_the_keyframes(tiny_scene_dir):
+    from ptovs.apps.roam import camera_path, pick_keyframes
+    from ptovs.scene import load_scene
+
+    scene = load_scene(tiny_scene_dir)
+    keys = pick_keyframes(scene.train_views(), 4, np.median(scene.points_xyz, 0))
+    assert len({v.name for v in keys}) == 4
+    cams = camera_path(keys, 7, 64, 48)  # s = 0, 0.5, 1, ..., 3
+    for i, key in enumerate(keys):
+        got = cams[2 * i].cam_from_world.double().numpy()
+        assert np.allclose(got[:3, :3], key.cam_from_world[:3, :3], atol=1e-5)
+        assert np.allclose(got[:3, 3], key.cam_from_world[:3, 3], atol=1e-4)
+    for a, b in zip(cams, cams[1:], strict=False):  # no jumps between frames
+        assert np.linalg.norm(a.cam_from_world[:3, 3] - b.cam_from_world[:3, 3]) < 5
+
+
+# ------------------------------------------------------------------ batch --
+
+
+def test_make_all_builds_the_per_scene_table_and_marks_a_failure(
+    trained_work, tiny_scene_dir, tmp_path
+):
+    """Two tiny scenes (seed 0 with its trained chain copied, seed 1 trained
+    here) and a broken one, through `make -j2 all`."""
+    from ptovs.synthetic import generate_scene
+
+    if shutil.which("make") is None:
+        pytest.fail("GNU make is needed for the batch target")
+    data, work = tmp_path / "data", tmp_path / "work"
+    name = tiny_scene_dir.name
+    shutil.copytree(tiny_scene_dir, data / name)
+    shutil.copytree(tiny_scene_dir.parent / "label" / name, data / "label" / name)
+    shutil.copytree(trained_work[0] / name, work / name,
+                    ignore=shutil.ignore_patterns("*.lock"))  # fmt: skip
+    generate_scene(data, preset="tiny", seed=1, progress=False)
+    (data / "broken" / "dense").mkdir(parents=True)  # no model: reconstruct fails
+    config = tmp_path / "test.toml"
+    config.write_text("[reconstruct]\niterations = 300\nmask_warmup = 100\n")
+    cmd = ["make", "-s", "-j2", "all", f"DATA={data}", f"WORK={work}", f"CONFIG={config}",
+           "SETUP=", f"PTOVS_BIN={sys.executable} -m ptovs"]  # fmt: skip
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode != 0, proc.stdout  # --strict: a scene has no numbers
+    table = (work / "table.md").read_text()
+    assert table in proc.stdout
+    head = next(line for line in table.splitlines() if line.startswith("| variant"))
+    assert head == "| variant | broken | tiny_s0 | tiny_s1 | mean |"
+    row = next(line for line in table.splitlines() if line.startswith("| male"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[1] == "failed" and cells[4].endswith("*")
+    for cell in cells[2:4]:
+        values = [float(x) for x in cell.split(" / ")]
+        assert len(values) == 3 and all(0.0 <= v <= 1.0 for v in values)
+    assert (work / "broken" / "FAILED").is_file()
+    assert "broken: failed" in table
+    assert "reconstruct failed" in (work / "broken" / "FAILED").read_text()
