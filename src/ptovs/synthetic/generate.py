@@ -858,7 +858,9 @@ def nearest_parts(
     ids = np.empty(len(q), np.int64)
     dist = np.empty(len(q), np.float32)
     for a in range(0, len(q), 4096):
-        d = torch.cdist(q[a : a + 4096], ref)
+        d = torch.cdist(
+            q[a : a + 4096], ref, compute_mode="donot_use_mm_for_euclid_dist"
+        )
         best = d.min(1)
         ids[a : a + 4096], dist[a : a + 4096] = (
             best.indices.numpy(),
