@@ -194,6 +194,7 @@ def pictures_part(work: Path, scene: Path, text: str, docs: Path) -> dict:
 
     import torch
 
+    from ptovs.apps import close_inputs
     from ptovs.apps.select import select_gaussians
     from ptovs.config import load_config
     from ptovs.raster import Camera, Gaussians
@@ -220,8 +221,7 @@ def pictures_part(work: Path, scene: Path, text: str, docs: Path) -> dict:
     row = np.hstack([to_uint8(photo), to_uint8(full.numpy()), to_uint8(part.numpy())])
     docs.mkdir(parents=True, exist_ok=True)
     write_png(docs / "select.png", row)
-    for art in (inputs.reconstruct, inputs.ae, inputs.male):
-        art.close()
+    close_inputs(inputs)
     panels = sorted((work.parent / "apps" / scene.name / "style").glob("*_styles.png"))
     if panels:
         shutil.copyfile(panels[0], docs / "style_votes.png")

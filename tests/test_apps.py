@@ -83,6 +83,7 @@ def test_select_hard_cases_are_finite_and_empty_when_nothing_is_valid():
 def test_select_ply_holds_exactly_the_selected_gaussians(
     app_work, tiny_scene_dir, tmp_path
 ):
+    from ptovs.apps import close_inputs
     from ptovs.apps.select import select_gaussians
     from ptovs.stage import Chain, RunContext, resolve_scene
 
@@ -103,8 +104,7 @@ def test_select_ply_holds_exactly_the_selected_gaussians(
     chain = Chain(ctx, resolve_scene(ctx, None, tiny_scene_dir))
     selection, querier, inputs = select_gaussians(chain, "Brick Facade")
     means = inputs.reconstruct.root()["means"]
-    for art in (inputs.reconstruct, inputs.ae, inputs.male):
-        art.close()
+    close_inputs(inputs)
     assert np.array_equal(sel["means"], means[selection.mask].astype(np.float32))
     assert np.array_equal(rst["means"], means[~selection.mask].astype(np.float32))
     assert np.isfinite(sel["sh"]).all() and sel["sh"].shape[1] == 16

@@ -26,29 +26,30 @@ def trained_chain(
     data: Path | None,
     variant: str,
     sets: tuple[str, ...],
-    query_over: dict[str, Any] | None = None,
 ):
     """The chain of `variant` for a scene with train-male built (cached stages
     return at once), and the scene reference.
 
     Args:
         obj: the CLI's RunContext.
-        query_over: values for the [query] section (decoding and relevancy knobs
-            the applications share with `ptovs query`).
+        sets: STAGE.KEY=VALUE overrides; `query.*` ones set the decoding and
+            relevancy knobs the applications share with `ptovs query`.
     """
     from ptovs.cli import ALL_STAGES, _run_stages, _split_sets
-    from ptovs.config import merge
-    from ptovs.stage import Chain, RunContext, resolve_scene
+    from ptovs.stage import Chain, resolve_scene
     from ptovs.variants import variant_sets
 
-    ctx = RunContext(
-        obj.work_dir, merge(obj.config, {"query": query_over or {}}), obj.force
-    )
-    ref = resolve_scene(ctx, scene_name, data)
+    ref = resolve_scene(obj, scene_name, data)
     split = _split_sets(sets, (*ALL_STAGES, "query"))
-    chain = Chain(ctx, ref, variant_sets(variant, split))
+    chain = Chain(obj, ref, variant_sets(variant, split))
     _run_stages(chain, chain.closure("train-male"), set())
     return chain, ref
+
+
+def close_inputs(inputs: Any) -> None:
+    """Close the artifacts of a query stage's `Inputs` (the scene needs nothing)."""
+    for art in (inputs.reconstruct, inputs.ae, inputs.male):
+        art.close()
 
 
 def variant_option(f):

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 import torch
 
-from ptovs.apps import trained_chain, variant_option
+from ptovs.apps import close_inputs, trained_chain, variant_option
 from ptovs.errors import InputError
 from ptovs.raster import Camera
 from ptovs.stage import RunContext, scene_options
@@ -143,7 +143,7 @@ def roam_frames(
     """Yield (rgb [H, W, 3] float, mask [H, W] bool) per camera."""
     from tqdm import tqdm
 
-    from ptovs.field.export import baked_sh
+    from ptovs.field.export import appearance_embedding, baked_sh
     from ptovs.field.render import gaussian_colors, ray_dirs
     from ptovs.raster import render
     from ptovs.stages.query import Querier
@@ -154,11 +154,7 @@ def roam_frames(
         field = querier.field
         emb = None
         if field.wild and field.embeddings:
-            emb = (
-                field.embeddings_of([image])
-                if image is not None
-                else torch.stack(list(field.embeddings.values())).mean(0, keepdim=True)
-            )
+            emb = appearance_embedding(field, image)
         chosen = None
         if mode == "select":
             sel = querier.select(text)
@@ -180,7 +176,7 @@ def roam_frames(
             alpha = out.alpha[..., 0]
             rgb = out.image[..., :3]
             if field.wild and field.nets.sky is not None and emb is not None:
-                sky = field.nets.background(ray_dirs(cam), emb[0])
+                sky = field.nets.background(ray_dirs(cam), emb)
                 rgb = rgb + (1.0 - alpha)[..., None] * sky
             elif field.background is not None:
                 rgb = rgb + (1.0 - alpha)[..., None] * field.background
@@ -191,8 +187,7 @@ def roam_frames(
                 mask = querier.answer_view(cam)[0].mask
             yield rgb.clamp(0, 1).numpy(), mask
     finally:
-        for art in (inputs.reconstruct, inputs.ae, inputs.male):
-            art.close()
+        close_inputs(inputs)
 
 
 def write_video(path: Path, frames, fps: float) -> int:

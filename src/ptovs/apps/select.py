@@ -19,7 +19,7 @@ from pathlib import Path
 
 import click
 
-from ptovs.apps import trained_chain, variant_option
+from ptovs.apps import close_inputs, trained_chain, variant_option
 from ptovs.errors import InputError
 from ptovs.stage import RunContext, scene_options
 
@@ -121,8 +121,7 @@ def command(
         }
         write_atomic(out.with_suffix(".json"), json.dumps(record, indent=1))
     finally:
-        for art in (inputs.reconstruct, inputs.ae, inputs.male):
-            art.close()
+        close_inputs(inputs)
     click.echo(
         f"select {text!r}: {n} of {len(sel.mask)} Gaussians "
         f"({100 * n / len(sel.mask):.1f} %), level {record['level']}, "

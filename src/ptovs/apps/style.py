@@ -23,7 +23,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ptovs.apps import trained_chain, variant_option
+from ptovs.apps import close_inputs, trained_chain, variant_option
 from ptovs.errors import InputError
 from ptovs.field.relevancy import threshold
 from ptovs.stage import RunContext, scene_options
@@ -99,8 +99,7 @@ def recognise(
                 on_view(view, results)
         seconds = time.perf_counter() - t0
     finally:
-        for art in (inputs.reconstruct, inputs.ae, inputs.male):
-            art.close()
+        close_inputs(inputs)
     ranking = sorted(styles, key=lambda s: (-votes[s], styles.index(s)))
     return {
         "winner": ranking[0],

@@ -18,6 +18,7 @@ from pathlib import Path
 import click
 
 from ptovs.stage import RunContext
+from ptovs.variants import VARIANTS
 
 FAILED_MARKER = "FAILED"
 
@@ -44,20 +45,21 @@ def collect(
         name = folder.name
         marker = obj.work_dir / name / FAILED_MARKER
         if marker.is_file():
-            failures[name] = marker.read_text().strip().splitlines()[-1:] or ["failed"]
-            failures[name] = failures[name][0]
+            lines = marker.read_text().strip().splitlines()
+            failures[name] = lines[-1] if lines else "failed"
+        try:
+            ref = resolve_scene(obj, name, folder)
+        except (InputError, MissingInputError, OSError, ValueError) as exc:
+            failures.setdefault(name, str(exc).splitlines()[0])
+            ref = None
         for variant in variants:
-            summary = None
-            try:
-                ref = resolve_scene(obj, name, folder)
-                art = obj.store.lookup(
-                    name,
-                    "evaluate",
-                    Chain(obj, ref, variant_sets(variant, {})).key("evaluate"),
-                )
-            except (InputError, MissingInputError, OSError, ValueError) as exc:
-                failures.setdefault(name, str(exc).splitlines()[0])
-                art = None
+            summary, art = None, None
+            if ref is not None:
+                try:
+                    key = Chain(obj, ref, variant_sets(variant, {})).key("evaluate")
+                    art = obj.store.lookup(name, "evaluate", key)
+                except (InputError, MissingInputError, OSError, ValueError) as exc:
+                    failures.setdefault(name, str(exc).splitlines()[0])
             if art is not None:
                 try:
                     summary, _ = read_metrics(art)
@@ -72,7 +74,8 @@ def collect(
 @click.option("--data", type=click.Path(path_type=Path, file_okay=False), required=True,
               help="Folder of scene folders (e.g. the seven PT-OVS scenes).")  # fmt: skip
 @click.option("--variant", "variants", multiple=True, default=("male",),
-              show_default=True, help="Variant rows (repeatable).")  # fmt: skip
+              type=click.Choice(list(VARIANTS)), show_default=True,
+              help="Variant rows (repeatable).")  # fmt: skip
 @click.option("--out", type=click.Path(path_type=Path), default=None,
               help="Also write the table here (Markdown) and <out>.json.")  # fmt: skip
 @click.option("--strict", is_flag=True,

@@ -11,18 +11,22 @@ from ptovs.field.ply import write_ply
 from ptovs.field.render import WildField
 
 
+def appearance_embedding(field: WildField, image: str | None = None) -> torch.Tensor:
+    """[D]: `image`'s embedding, or the neutral one (the mean embedding of the
+    images the field knows). Only for a wild field with embeddings."""
+    if image is not None:
+        return field.embeddings_of([image])[0]
+    return torch.stack(list(field.embeddings.values())).mean(0)
+
+
 def baked_sh(field: WildField, image: str | None = None) -> torch.Tensor:
     """SH [N, K, 3] with ΔSH of `image`'s embedding (or the neutral one) added.
 
-    The neutral appearance is the mean embedding of the images the field knows.
     A plain field (no networks) returns its SH unchanged.
     """
     if field.nets is None or not field.embeddings:
         return field.sh
-    if image is not None:
-        emb = field.embeddings_of([image])[0]
-    else:
-        emb = torch.stack(list(field.embeddings.values())).mean(0)
+    emb = appearance_embedding(field, image)
     with torch.no_grad():
         field.nets.eval()
         return field.sh + field.nets.delta_sh(field.sh, field.gaussians.means, emb)

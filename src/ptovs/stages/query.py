@@ -46,7 +46,6 @@ from ptovs.field.relevancy import (
     PhraseDecoder,
     QuerySettings,
     Selection,
-    answer,
     finish,
     score_maps,
     select,
@@ -277,15 +276,25 @@ class Querier:
         valid = codes.flatten(1).abs().amax(1) > 0
         if min_opacity > 0:
             valid &= self.gaussians.opacities.reshape(-1) >= min_opacity
-        codes = codes.permute(1, 2, 0, 3)  # [L, A, P, 3]
-        if self.config.decode == "exact":
-            s, b = score_maps(
-                self.decoder(codes), q, self.canonical, self.bg, self.settings, [q]
-            )
-        else:
-            vals = self.decoder.lookup(codes, self.query_table(q, (q,)))
-            s, b = vals[..., 0], (vals[..., 1] if vals.shape[-1] > 1 else None)
+        s, b = self.scores(codes.permute(1, 2, 0, 3), q, (q,))  # [L, A, P]
         return select(s, b, self.settings, valid)
+
+    def scores(
+        self,
+        codes: torch.Tensor,
+        query: int,
+        image_queries: tuple[int, ...],
+        cos: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(relevancy, per-code background or None) of codes [..., 3] for a query,
+        through the table or exactly (`cos`: the codes' cosines, if decoded already)."""
+        if self.config.decode == "exact":
+            cos = self.decoder(codes) if cos is None else cos
+            return score_maps(
+                cos, query, self.canonical, self.bg, self.settings, list(image_queries)
+            )
+        vals = self.decoder.lookup(codes, self.query_table(query, image_queries))
+        return vals[..., 0], (vals[..., 1] if vals.shape[-1] > 1 else None)
 
     def answer_view(self, view, queries: list[str] | None = None):
         codes, alpha = self.code_maps(view)
@@ -293,27 +302,13 @@ class Querier:
         if self.config.min_alpha > 0:
             support = (alpha >= self.config.min_alpha).float()
         queries = queries or self.queries
-        qidx = [self.index[q] for q in queries]
-        if self.config.decode == "exact":
-            cos = self.decoder(codes)
-            return [
-                answer(
-                    cos,
-                    q,
-                    self.canonical,
-                    self.bg,
-                    self.settings,
-                    qidx,
-                    support=support,
-                )
-                for q in qidx
-            ]
-        out = []
-        for q in qidx:
-            vals = self.decoder.lookup(codes, self.query_table(q, tuple(qidx)))
-            b = vals[..., 1] if vals.shape[-1] > 1 else None
-            out.append(finish(vals[..., 0], b, self.settings, support))
-        return out
+        qidx = tuple(self.index[q] for q in queries)
+        # exact decoding: every phrase's cosine once for all the queries
+        cos = self.decoder(codes) if self.config.decode == "exact" else None
+        return [
+            finish(*self.scores(codes, q, qidx, cos), self.settings, support)
+            for q in qidx
+        ]
 
 
 def run(inputs: Inputs, config: Config, skip: frozenset = frozenset()) -> Iterator:

@@ -852,9 +852,10 @@ def nearest_parts(
     ref = torch.from_numpy(pts["xyz"].astype(np.float32))
     part = pts["part_id"].astype(np.int16)
     if max_dist is None:
-        world = World.from_dict(json.loads((truth / "parts.json").read_text()))
-        max_dist = 0.05 * world.radius
+        max_dist = 0.05 * json.loads((truth / "parts.json").read_text())["radius"]
     q = torch.from_numpy(np.asarray(xyz, np.float32))
+    if len(ref) == 0:
+        return np.full(len(q), -2, np.int16), np.full(len(q), np.inf, np.float32)
     ids = np.empty(len(q), np.int64)
     dist = np.empty(len(q), np.float32)
     for a in range(0, len(q), 4096):
@@ -866,8 +867,7 @@ def nearest_parts(
             best.indices.numpy(),
             best.values.numpy(),
         )
-    out = part[ids] if len(ref) else np.full(len(q), -2, np.int16)
-    return np.where(dist <= max_dist, out, np.int16(-2)).astype(np.int16), dist
+    return np.where(dist <= max_dist, part[ids], np.int16(-2)).astype(np.int16), dist
 
 
 def rerender(
