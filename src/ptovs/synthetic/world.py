@@ -1609,13 +1609,15 @@ def render_swatch(desc: dict, size: int = 224) -> np.ndarray:
             "e1": [3], "e2": [3], "extent": float, "light": float, "gamma": float,
             "render_px": int} (a square patch of the solid texture on the plane
             origin + a e1 + b e2 under a constant linear light factor, rendered at
-            render_px and resized as a crop would be), or {"kind": "sky",
-            "zenith": rgb, "horizon": rgb} (a vertical gradient).
+            render_px and resized as a crop would be), {"kind": "sky",
+            "zenith": rgb, "horizon": rgb} (a vertical gradient), or
+            {"kind": "landmark", ...} (`landmark_swatch`).
         size: output side in pixels.
 
     Returns:
         [size, size, 3] float32 RGB in [1/255, 1] (never black: black means
-        "outside the mask" to the encoder).
+        "outside the mask" to the encoder; a landmark swatch is black outside
+        the landmark, as a segment crop is).
     """
     import cv2
 
@@ -1646,9 +1648,62 @@ def render_swatch(desc: dict, size: int = 224) -> np.ndarray:
             (size, size),
             interpolation=cv2.INTER_LINEAR,
         )
+    elif kind == "landmark":
+        return landmark_swatch(desc, size)
     else:
-        raise ValueError(f"unknown swatch kind {kind!r}; expected 'texture' or 'sky'")
+        raise ValueError(
+            f"unknown swatch kind {kind!r}; expected 'texture', 'sky' or 'landmark'"
+        )
     return np.clip(np.asarray(img, np.float32), 1.0 / 255.0, 1.0)
+
+
+def landmark_camera(world: World, azimuth: float, px: int) -> Camera:
+    """A canonical square view of the whole landmark (a style's viewpoint).
+
+    From `azimuth` degrees around the front (0 = the front, as `sample_camera`
+    measures it), 2.6 bounding radii from the centre, at the eye height of a
+    typical photo (1.2 + 0.3 centre height), looking at the centre, with the
+    bounding sphere filling the frame.
+    """
+    a = math.radians(azimuth)
+    dist = 2.6 * world.radius
+    eye = np.array(
+        [
+            world.center[0] + dist * math.sin(a),
+            world.center[1] - dist * math.cos(a),
+            1.2 + 0.3 * world.center[2],
+        ]
+    )
+    half = math.asin(min(0.99, world.radius / float(np.linalg.norm(world.center - eye))))
+    f = (px / 2) / math.tan(half)
+    K = np.array([[f, 0.0, px / 2], [0.0, f, px / 2], [0.0, 0.0, 1.0]])
+    return Camera(K, look_at(eye, np.asarray(world.center, float)), int(px), int(px))
+
+
+def landmark_swatch(desc: dict, size: int = 224) -> np.ndarray:
+    """The whole landmark photographed under neutral daylight, as a segment crop.
+
+    Args:
+        desc: {"kind": "landmark", "world": World dict, "azimuth": degrees,
+            "px": rendered side} (`landmark_camera`; one sample per pixel,
+            with shadows).
+        size: output side.
+
+    Returns:
+        [size, size, 3] float32: the landmark's pixels (sky and ground black,
+        i.e. outside the mask) cropped and padded exactly as `prepare_crop`
+        crops a segment; pixels inside the landmark are never black.
+    """
+    from ptovs.encoders import prepare_crop  # here: encoders import this module
+
+    world = World.from_dict(desc["world"])
+    cam = landmark_camera(world, float(desc["azimuth"]), int(desc.get("px", 128)))
+    view = render(world, cam, neutral_appearance(), aa=1)
+    inside = view.part_id >= 0
+    if not inside.any():
+        raise ValueError("landmark swatch: the landmark is not in view")
+    img = np.maximum(view.image.astype(np.float32) / 255.0, 1.0 / 255.0)
+    return prepare_crop(img, inside, size)
 
 
 def part_swatch(world: World, part: Part, render_px: int) -> dict:
