@@ -315,3 +315,26 @@ def test_per_query_tables_match_exact_decoding():
         got = rel.finish(vals[..., 0], vals[..., 1] if b is not None else None, st)
         assert np.abs(got.smoothed - ref.smoothed).max() < 0.02
         assert (got.mask != ref.mask).mean() < 0.01
+
+
+def test_vocabulary_change_renews_query_keys_only(scene_copy, tmp_path):
+    """Text embeddings come from synthetic/vocabulary.json, which the scene
+    fingerprint leaves out: a changed vocabulary gives query (and so evaluate)
+    new keys, and leaves the trained field's keys alone."""
+    from ptovs.stage import Chain, RunContext, resolve_scene
+
+    def keys() -> dict[str, str]:
+        ctx = RunContext(tmp_path / "work")
+        chain = Chain(ctx, resolve_scene(ctx, None, scene_copy))
+        return {s: chain.key(s) for s in ("train-male", "query", "evaluate")}
+
+    before = keys()
+    assert before == keys()  # stable
+    path = scene_copy / "synthetic/vocabulary.json"
+    vocab = json.loads(path.read_text())
+    vocab["phrases"]["Extra Phrase"] = next(iter(vocab["phrases"].values()))
+    path.write_text(json.dumps(vocab))
+    after = keys()
+    assert after["train-male"] == before["train-male"]
+    assert after["query"] != before["query"]
+    assert after["evaluate"] != before["evaluate"]

@@ -96,6 +96,9 @@ class StageSpec:
     count: Callable[[Any, Any], int] | None = None
     after: Callable[[Artifact], None] | None = None
     """Runs on the finished (or cached) artifact, e.g. to write PNG previews."""
+    extra_key: Callable[[Any, Any], dict[str, str]] | None = None
+    """(config, SceneRef) -> {name: digest} of what else the output depends on
+    (files outside the scene fingerprint, e.g. the stand-in encoder's vocabulary)."""
 
     @property
     def inputs(self) -> dict[str, str]:
@@ -275,8 +278,12 @@ class Chain:
             return self.scene.key()
         if stage not in self._keys:
             spec = get_stage(stage)
+            deps = self.upstream_keys(stage)
+            if spec.extra_key is not None:
+                extra = spec.extra_key(self.config(stage), self.scene)
+                deps.update({f"extra:{k}": v for k, v in extra.items()})
             self._keys[stage] = artifact_key(
-                spec.name, spec.version, self.config(stage), self.upstream_keys(stage)
+                spec.name, spec.version, self.config(stage), deps
             )
         return self._keys[stage]
 
@@ -486,11 +493,12 @@ def stage_command(
     kind: Literal["views", "single"] = "views",
     count: Callable[[Any, Any], int] | None = None,
     after: Callable[[Artifact], None] | None = None,
+    extra_key: Callable[[Any, Any], dict[str, str]] | None = None,
     help: str | None = None,
 ) -> click.Command:
     """Register a stage and build its click command."""
     REGISTRY[name] = StageSpec(
-        name, version, config_cls, inputs_cls, run, kind, count, after
+        name, version, config_cls, inputs_cls, run, kind, count, after, extra_key
     )
     fields = "\n".join(
         f"  {f.name} = {f.default!r}" for f in dataclasses.fields(config_cls)

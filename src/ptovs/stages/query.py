@@ -367,7 +367,25 @@ def read_results(
     }
 
 
-stage_cmd = stage_command(NAME, VERSION, Config, Inputs, run, count=_count)
+def text_key(config: Config, scene_ref: Any) -> dict[str, str]:
+    """The stand-in encoder's vocabulary is outside the scene fingerprint, but
+    the text embeddings come from it: key query artifacts by its content."""
+    scene = scene_ref.load()
+    if config.encoder == "openclip" or (
+        config.encoder == "auto" and not scene.synthetic
+    ):
+        return {}  # the checkpoint path is in the config
+    import hashlib
+
+    path = Path(scene.root) / "synthetic" / "vocabulary.json"
+    if not path.is_file():
+        return {"vocabulary": "missing"}  # the stage itself says what is wrong
+    return {"vocabulary": hashlib.sha256(path.read_bytes()).hexdigest()}
+
+
+stage_cmd = stage_command(
+    NAME, VERSION, Config, Inputs, run, count=_count, extra_key=text_key
+)
 
 
 def write_outputs(
