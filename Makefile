@@ -59,6 +59,9 @@ bench: setup
 	$(BIN)/python bench/extract.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
 	$(BIN)/python bench/train.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
 	$(BIN)/python bench/query.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
+	$(BIN)/python bench/style_instrument.py --preset bench --seeds 12 --out $(WORK)/bench/style_instrument.json
+	$(BIN)/python bench/style_instrument.py --preset tiny --seeds 30 --out $(WORK)/bench/style_instrument.json
+	$(BIN)/python bench/apps.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
 
 # every stage of every scene, then the table; -k and the leading "-": a failing
 # scene writes $(WORK)/<scene>/FAILED (with its log's path) and the others go on

@@ -20,8 +20,8 @@ Parts:
           with the default config: wall time and the per-scene table
 
 Uses the default chains of bench/train.py (<work>/default); runs what is missing.
-The scenes must carry the style vocabulary (`ptovs synth-scene` writes it; it is
-deterministic, so regenerating a scene keeps every cached stage valid).
+The scenes must carry the current style vocabulary (`ptovs synth-scene` writes it;
+it is deterministic, so regenerating a scene keeps the trained stages valid).
 Results go to <work>/bench_apps.json.
 """
 
@@ -82,10 +82,15 @@ def select_part(work: Path, scene: Path, out: Path) -> dict:
 
 def style_part(work: Path, scene: Path, out: Path) -> dict:
     truth = _truth(scene)
-    if "style" not in truth:
+    vocab = json.loads((scene / "synthetic/vocabulary.json").read_text())
+    kinds = {
+        i["swatch"]["kind"] for look in vocab.get("styles", {}).values() for i in look
+    }
+    if "style" not in truth or kinds != {"landmark"}:
         raise SystemExit(
-            f"{scene} has no style vocabulary: regenerate it with `ptovs synth-scene` "
-            "(deterministic: the cached stages stay valid)"
+            f"{scene} has no style vocabulary or an old one (part-swatch mixtures): "
+            "regenerate it with `ptovs synth-scene` (deterministic: the trained "
+            "stages stay valid; query artifacts are keyed by the vocabulary)"
         )
     wall, rss, _ = _ptovs(work, "style", "--data", str(scene), "--out", str(out))
     rec = json.loads((out / "style.json").read_text())

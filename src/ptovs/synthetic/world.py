@@ -1674,7 +1674,9 @@ def landmark_camera(world: World, azimuth: float, px: int) -> Camera:
             1.2 + 0.3 * world.center[2],
         ]
     )
-    half = math.asin(min(0.99, world.radius / float(np.linalg.norm(world.center - eye))))
+    half = math.asin(
+        min(0.99, world.radius / float(np.linalg.norm(world.center - eye)))
+    )
     f = (px / 2) / math.tan(half)
     K = np.array([[f, 0.0, px / 2], [0.0, f, px / 2], [0.0, 0.0, 1.0]])
     return Camera(K, look_at(eye, np.asarray(world.center, float)), int(px), int(px))
