@@ -63,6 +63,13 @@ bench: setup
 	$(BIN)/python bench/style_instrument.py --preset tiny --seeds 30 --out $(WORK)/bench/style_instrument.json
 	$(BIN)/python bench/apps.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
 
+# threads per scene job: the cores shared among make's parallel jobs (-jN; a bare -j
+# counts as one job per core), at least one. OpenMP teams on oversubscribed cores
+# spin at every barrier: three 2-thread jobs on 2 cores ran ~3x slower in total.
+NPROC   := $(shell nproc 2>/dev/null || echo 1)
+JOBS     = $(if $(filter -j,$(MAKEFLAGS)),$(NPROC),$(or $(patsubst -j%,%,$(filter -j%,$(MAKEFLAGS))),1))
+THREADS ?= $(shell n=$$(( $(NPROC) / $(JOBS) )); [ $$n -ge 1 ] && echo $$n || echo 1)
+
 # every stage of every scene, then the table; -k and the leading "-": a failing
 # scene writes $(WORK)/<scene>/FAILED (with its log's path) and the others go on
 all: $(SETUP)
@@ -73,7 +80,7 @@ scenes: $(SCENES)
 $(SCENES): $(SETUP)
 	@mkdir -p $(WORK)/$@ && rm -f $(WORK)/$@/FAILED
 	@for s in $(STAGES); do \
-	  $(PTOVS) -q $$s --scene $@ --data $(DATA)/$@ >> $(WORK)/$@/run.log 2>&1 || \
+	  OMP_NUM_THREADS=$(THREADS) $(PTOVS) -q $$s --scene $@ --data $(DATA)/$@ >> $(WORK)/$@/run.log 2>&1 || \
 	  { echo "$$s failed; see $(WORK)/$@/run.log" | tee $(WORK)/$@/FAILED; exit 1; }; \
 	done
 	@echo "$@: every stage done"
