@@ -440,7 +440,12 @@ int backward_tiles(const GParam* gp, const float* colors, const int d_, const fl
     } else {
       for (int j = 0; j < s_pad; ++j) acc[j] = splat(0.0f);  // padding stays zero
     }
-#pragma omp for schedule(dynamic, 1)
+    // Tiles go to threads round-robin (static, 1), not first-come: each thread's
+    // gradient slice then sums the same tiles in the same order on every run, and
+    // the slices are added in thread order below, so gradients are bitwise
+    // reproducible for a given thread count (a dynamic schedule made every run
+    // differ in the last bits, which training amplified).
+#pragma omp for schedule(static, 1)
     for (int ti = 0; ti < n_tiles; ++ti) {
       if (failed) continue;  // no scratch memory: every thread still reaches the loop
       const Tile t = make_tile(ti, tw, tile, width, height);
