@@ -273,17 +273,24 @@ class Chain:
         needed = spec.needed_inputs(self.config(stage))
         return {name: self.key(up) for name, up in needed.items()}
 
+    def deps(self, stage: str) -> dict[str, str]:
+        """What the stage's key covers besides its config: the upstream keys and
+        the stage's extra digests (as "extra:<name>"); stored as the artifact's
+        inputs."""
+        spec = get_stage(stage)
+        deps = self.upstream_keys(stage)
+        if spec.extra_key is not None:
+            extra = spec.extra_key(self.config(stage), self.scene)
+            deps.update({f"extra:{k}": v for k, v in extra.items()})
+        return deps
+
     def key(self, stage: str) -> str:
         if stage == SCENE:
             return self.scene.key()
         if stage not in self._keys:
             spec = get_stage(stage)
-            deps = self.upstream_keys(stage)
-            if spec.extra_key is not None:
-                extra = spec.extra_key(self.config(stage), self.scene)
-                deps.update({f"extra:{k}": v for k, v in extra.items()})
             self._keys[stage] = artifact_key(
-                spec.name, spec.version, self.config(stage), deps
+                spec.name, spec.version, self.config(stage), self.deps(stage)
             )
         return self._keys[stage]
 
@@ -351,14 +358,22 @@ class Chain:
             return "partial", f"checkpoint{at}; rerun to resume"
         others = store.others(self.scene.name, stage, key)
         if others:
-            old = others[0]
-            changed = [
-                k
-                for k, v in self.upstream_keys(stage).items()
-                if old.inputs.get(k) != v
-            ]
+            deps = self.deps(stage)
+            config = json.loads(canonical_json(self.config(stage)))
+
+            def differences(art: Artifact) -> tuple[list[str], bool]:
+                changed = [k for k, v in deps.items() if art.inputs.get(k) != v]
+                return changed, art.config != config
+
+            # explain against the nearest older artifact (there may be variants)
+            changed, config_differs = min(
+                map(differences, others), key=lambda d: (len(d[0]) + d[1], d[1])
+            )
+            names = [k.removeprefix("extra:") for k in changed]
             why = (
-                f"upstream changed ({', '.join(changed)})"
+                f"upstream changed ({', '.join(names)})"
+                if changed and not config_differs
+                else f"config and upstream changed ({', '.join(names)})"
                 if changed
                 else "config or version changed"
             )
@@ -393,7 +408,7 @@ def execute(chain: Chain, stage: str, *, force: bool = False) -> Artifact:
             provenance(),
             version=spec.version,
             config_json=canonical_json(config),
-            inputs_json=canonical_json(chain.upstream_keys(stage)),
+            inputs_json=canonical_json(chain.deps(stage)),
             scene=scene,
         )
         writer = store.writer(scene, stage, key, attrs)
