@@ -121,8 +121,9 @@ def test_select_ply_holds_exactly_the_selected_gaussians(
 
 
 def test_nearest_parts_reads_the_world_truth(tiny_scene_dir):
-    """The truth `select` is scored against (docs/benchmarks.md): each truth
-    sample maps to its own part, a point far from every surface to -2."""
+    """The truth `select` is scored against (docs/benchmarks.md): dense samples
+    of every surface the cameras see; each tracked point (points3D, another
+    sample of the same surfaces) maps to its own part, a far point to -2."""
     from ptovs.synthetic.generate import nearest_parts
 
     pts = np.load(tiny_scene_dir / "synthetic/truth/points3D.npz")
@@ -130,6 +131,12 @@ def test_nearest_parts_reads_the_world_truth(tiny_scene_dir):
     assert np.array_equal(pid, pts["part_id"][::7]) and np.all(dist < 1e-5)
     far, _ = nearest_parts(tiny_scene_dir, np.array([[1e3, 1e3, 1e3]]))
     assert far.tolist() == [-2]
+    from ptovs.synthetic.generate import surface_samples
+
+    xyz, part = surface_samples(tiny_scene_dir.resolve())
+    truth = json.loads((tiny_scene_dir / "synthetic/truth/parts.json").read_text())
+    assert len(xyz) > 10 * len(pts["xyz"]) and np.isfinite(xyz).all()
+    assert set(np.unique(part).tolist()) == {-1} | {p["id"] for p in truth["parts"]}
 
 
 def test_empty_selection_is_a_clear_error_and_writes_nothing(

@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import shutil
@@ -844,42 +845,77 @@ def load_truth(scene_dir: Path) -> tuple[World, dict]:
     return world, cameras
 
 
+SURFACE_SAMPLES = 400_000
+"""Budget of `surface_samples` (bench: about 0.4 % of the landmark radius apart)."""
+
+
+@functools.lru_cache(maxsize=4)
+def surface_samples(
+    scene_dir: Path, budget: int = SURFACE_SAMPLES
+) -> tuple[np.ndarray, np.ndarray]:
+    """Dense truth: the world's surfaces seen by the scene's cameras, with part ids.
+
+    Every pixel centre of every camera (cameras.json) is ray-cast against the
+    world (no occluders); the hits on the landmark and on the ground within 1.5
+    bounding radii of its centre are kept, and a seeded subset of `budget` of them
+    is returned. Unlike points3D.npz (the sparse, tracked points: 60 per image on
+    tiny) it covers every seen surface densely enough to tell which part a
+    Gaussian centre sits on.
+
+    Returns:
+        xyz [M, 3] float32 and part ids [M] int16 (-1 = ground).
+    """
+    world, cameras = load_truth(Path(scene_dir))
+    xyz, part = [], []
+    for rec in cameras["images"]:
+        cam = Camera.from_dict(rec)
+        pid, depth = render_truth(world, cam)
+        jj, ii = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
+        p = cam.centre + np.where(np.isfinite(depth), depth, 0.0)[..., None] * (
+            cam.ray_dirs(jj, ii)
+        )
+        near = np.hypot(p[..., 0] - world.center[0], p[..., 1] - world.center[1])
+        keep = np.isfinite(depth) & ((pid >= 0) | (near < 1.5 * world.radius))
+        xyz.append(p[keep].astype(np.float32))
+        part.append(pid[keep].astype(np.int16))
+    xyz_all, part_all = np.concatenate(xyz), np.concatenate(part)
+    if len(xyz_all) > budget:
+        pick = np.sort(np.random.default_rng(0).choice(len(xyz_all), budget, False))
+        xyz_all, part_all = xyz_all[pick], part_all[pick]
+    return xyz_all, part_all
+
+
 def nearest_parts(
     scene_dir: Path, xyz: np.ndarray, max_dist: float | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """The world's part at each 3-D point: that of the nearest truth surface sample.
 
     Args:
-        scene_dir: a generated scene (reads synthetic/truth/points3D.npz: points
-            on visible surfaces with their part ids, -1 = ground).
+        scene_dir: a generated scene (its world and cameras: `surface_samples`).
         xyz: [N, 3] points, e.g. Gaussian centres.
-        max_dist: points farther than this from every sample get -2 (nowhere);
-            default 5 % of the landmark's bounding radius (the median Gaussian of a
-            bench field sits 2 % of it from the nearest sample).
+        max_dist: points farther than this from every sample get -2 (nowhere,
+            e.g. floaters or Gaussians inside a solid); default 5 % of the
+            landmark's bounding radius.
 
     Returns:
         part ids [N] int16 and distances [N] float32.
     """
-    truth = Path(scene_dir) / "synthetic" / "truth"
-    pts = np.load(truth / "points3D.npz")
-    ref = torch.from_numpy(pts["xyz"].astype(np.float32))
-    part = pts["part_id"].astype(np.int16)
+    ref_np, part = surface_samples(Path(scene_dir).resolve())
     if max_dist is None:
+        truth = Path(scene_dir) / "synthetic" / "truth"
         max_dist = 0.05 * json.loads((truth / "parts.json").read_text())["radius"]
-    q = torch.from_numpy(np.asarray(xyz, np.float32))
-    if len(ref) == 0:
+    q = torch.from_numpy(np.asarray(xyz, np.float32).reshape(-1, 3))
+    if len(ref_np) == 0 or len(q) == 0:
         return np.full(len(q), -2, np.int16), np.full(len(q), np.inf, np.float32)
+    ref = torch.from_numpy(ref_np)
     ids = np.empty(len(q), np.int64)
     dist = np.empty(len(q), np.float32)
-    for a in range(0, len(q), 4096):
+    for a in range(0, len(q), 512):
         d = torch.cdist(
-            q[a : a + 4096], ref, compute_mode="donot_use_mm_for_euclid_dist"
+            q[a : a + 512], ref, compute_mode="donot_use_mm_for_euclid_dist"
         )
         best = d.min(1)
-        ids[a : a + 4096], dist[a : a + 4096] = (
-            best.indices.numpy(),
-            best.values.numpy(),
-        )
+        ids[a : a + 512], dist[a : a + 512] = best.indices.numpy(), best.values.numpy()
     return np.where(dist <= max_dist, part[ids], np.int16(-2)).astype(np.int16), dist
 
 
