@@ -17,8 +17,10 @@ STAGES := reconstruct render-appearances extract-features uncertainty train-ae t
 SETUP     ?= setup
 PTOVS_BIN ?= $(BIN)/ptovs
 PTOVS  := $(PTOVS_BIN) --work-dir $(WORK) --config $(CONFIG)
-# the demo scene's texts (tiny, seed 0: its parts are a brick facade, a Doric column, a tiled roof)
-DEMO_TEXT ?= Tiled Roof
+# the demo's text for select and roam (tiny, seed 0: its parts are a brick facade, a Doric
+# column, a tiled roof; with the default config "Doric Column" selects 1,039 Gaussians, 56 %
+# on the columns, where "Tiled Roof" selects ground and floaters)
+DEMO_TEXT ?= Doric Column
 
 .PHONY: setup demo test lint format bench all scenes table status clean-work $(SCENES)
 
