@@ -119,11 +119,15 @@ class Inputs:
     male: Artifact = upstream("train-male")
 
 
+def encoder_name(config: Config, scene: Any) -> str:
+    """ "synthetic" or "openclip": the text encoder `config.encoder` means here."""
+    if config.encoder == "auto":
+        return "synthetic" if scene.synthetic else "openclip"
+    return config.encoder
+
+
 def text_encoder(config: Config, scene: Any) -> Encoder:
-    name = config.encoder
-    if name == "auto":
-        name = "synthetic" if scene.synthetic else "openclip"
-    if name == "synthetic":
+    if encoder_name(config, scene) == "synthetic":
         from ptovs.encoders.synthetic import SyntheticEncoder
 
         return SyntheticEncoder.from_scene(scene.root)
@@ -371,9 +375,7 @@ def text_key(config: Config, scene_ref: Any) -> dict[str, str]:
     """The stand-in encoder's vocabulary is outside the scene fingerprint, but
     the text embeddings come from it: key query artifacts by its content."""
     scene = scene_ref.load()
-    if config.encoder == "openclip" or (
-        config.encoder == "auto" and not scene.synthetic
-    ):
+    if encoder_name(config, scene) != "synthetic":
         return {}  # the checkpoint path is in the config
     import hashlib
 

@@ -290,19 +290,31 @@ def clean_albedo(world: World, part_id: np.ndarray, p: np.ndarray) -> np.ndarray
     return out
 
 
+def _backproject(
+    world: World, cam: Camera, depth: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """World points [H, W, 3] of a depth map's pixel centres (the camera centre
+    where the depth is not finite), and whether each lies within 1.5 bounding
+    radii of the landmark's centre, horizontally ([H, W] bool)."""
+    H, W = depth.shape
+    jj, ii = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    xyz = cam.centre + np.where(np.isfinite(depth), depth, 0.0)[..., None] * (
+        cam.ray_dirs(jj, ii)
+    )
+    near = np.hypot(xyz[..., 0] - world.center[0], xyz[..., 1] - world.center[1])
+    return xyz, near < 1.5 * world.radius
+
+
 def _sample_points(
     rng: np.random.Generator, world: World, cam: Camera, view: View, k: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """k surface points seen at pixel centres of a view: xyz, part id, pixel (i, j)."""
-    H, W = view.depth.shape
+    W = view.depth.shape[1]
     ok = np.isfinite(view.depth) & ~view.transient
     # ground points only near the landmark
     C = cam.centre
-    jj, ii = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
-    d = cam.ray_dirs(jj, ii)
-    xyz = C + np.where(ok, view.depth, 0.0)[..., None] * d
-    near = np.hypot(xyz[..., 0] - world.center[0], xyz[..., 1] - world.center[1])
-    ground_ok = ok & (view.part_id < 0) & (near < 1.5 * world.radius)
+    _, near = _backproject(world, cam, view.depth)
+    ground_ok = ok & (view.part_id < 0) & near
     land = np.flatnonzero(ok & (view.part_id >= 0))
     grd = np.flatnonzero(ground_ok)
     n_land = min(len(land), int(round(0.75 * k)))
@@ -414,7 +426,7 @@ STYLE_AZIMUTHS = (-40.0, 0.0, 40.0)
 STYLE_PX = 128
 
 
-def landmark_look(world: World, preset: Preset) -> list[dict]:
+def landmark_look(world: World) -> list[dict]:
     """A landmark's whole look (a style's text side), as an equal-weight mixture.
 
     Three swatches of kind "landmark": the whole landmark rendered under the
@@ -429,7 +441,6 @@ def landmark_look(world: World, preset: Preset) -> list[dict]:
     70 % of tiny photos picked their own landmark's style, against 82 % and 89 %
     with the rendered views; work measured in docs/benchmarks.md.)
     """
-    del preset  # the look does not depend on the image sizes of a preset
     d = world.to_dict()
     for p in d["parts"]:
         p["name"] = p["query"] = ""
@@ -456,9 +467,9 @@ def scene_styles(preset: Preset, seed: int, world: World) -> tuple[str, dict]:
     """
     rng = _rng(seed, 8)
     names = [STYLES[i] for i in rng.permutation(len(STYLES))[:N_STYLES]]
-    styles = {names[0]: landmark_look(world, preset)}
+    styles = {names[0]: landmark_look(world)}
     for k, name in enumerate(names[1:], start=1):
-        styles[name] = landmark_look(_world(preset, seed + 7919 * k), preset)
+        styles[name] = landmark_look(_world(preset, seed + 7919 * k))
     return names[0], dict(sorted(styles.items()))
 
 
@@ -870,12 +881,8 @@ def surface_samples(
     for rec in cameras["images"]:
         cam = Camera.from_dict(rec)
         pid, depth = render_truth(world, cam)
-        jj, ii = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
-        p = cam.centre + np.where(np.isfinite(depth), depth, 0.0)[..., None] * (
-            cam.ray_dirs(jj, ii)
-        )
-        near = np.hypot(p[..., 0] - world.center[0], p[..., 1] - world.center[1])
-        keep = np.isfinite(depth) & ((pid >= 0) | (near < 1.5 * world.radius))
+        p, near = _backproject(world, cam, depth)
+        keep = np.isfinite(depth) & ((pid >= 0) | near)
         xyz.append(p[keep].astype(np.float32))
         part.append(pid[keep].astype(np.int16))
     xyz_all, part_all = np.concatenate(xyz), np.concatenate(part)
@@ -910,12 +917,16 @@ def nearest_parts(
     ref = torch.from_numpy(ref_np)
     ids = np.empty(len(q), np.int64)
     dist = np.empty(len(q), np.float32)
-    for a in range(0, len(q), 512):
+    rows = max(1, (1 << 25) // len(ref))  # distance blocks of at most 128 MB
+    for a in range(0, len(q), rows):
         d = torch.cdist(
-            q[a : a + 512], ref, compute_mode="donot_use_mm_for_euclid_dist"
+            q[a : a + rows], ref, compute_mode="donot_use_mm_for_euclid_dist"
         )
         best = d.min(1)
-        ids[a : a + 512], dist[a : a + 512] = best.indices.numpy(), best.values.numpy()
+        ids[a : a + rows], dist[a : a + rows] = (
+            best.indices.numpy(),
+            best.values.numpy(),
+        )
     return np.where(dist <= max_dist, part[ids], np.int16(-2)).astype(np.int16), dist
 
 

@@ -934,6 +934,28 @@ def look_at(eye: np.ndarray, target: np.ndarray, roll: float = 0.0) -> np.ndarra
     return T
 
 
+def _orbit_eye(world: World, azimuth: float, dist: float, height: float) -> np.ndarray:
+    """A camera centre `dist` from the landmark's axis at `azimuth` degrees around
+    the front (0 = in front, -y), at `height`."""
+    a = math.radians(azimuth)
+    return np.array(
+        [
+            world.center[0] + dist * math.sin(a),
+            world.center[1] - dist * math.cos(a),
+            height,
+        ]
+    )
+
+
+def _focal_to_fill(world: World, eye: np.ndarray, fill: float, side: int) -> float:
+    """Focal length at which the bounding sphere, seen from `eye`, spans `fill`
+    times an image side of `side` pixels."""
+    half = math.asin(
+        min(0.99, world.radius / float(np.linalg.norm(world.center - eye)))
+    )
+    return fill * (side / 2) / math.tan(half)
+
+
 def sample_camera(
     rng: np.random.Generator,
     world: World,
@@ -963,14 +985,7 @@ def sample_camera(
         height = rng.uniform(1.2, 0.3 * 2 * world.center[2] + 1.5)
     else:
         height = rng.uniform(2.0, 1.2 * R)
-    a = math.radians(az)
-    eye = np.array(
-        [
-            world.center[0] + dist * math.sin(a),
-            world.center[1] - dist * math.cos(a),
-            height,
-        ]
-    )
+    eye = _orbit_eye(world, az, dist, height)
     close = (not frontal) and rng.random() < 0.15
     target = world.center + rng.normal(0.0, (0.3 if close else 0.12) * R, 3)
     target[2] = max(target[2], 0.5)
@@ -980,8 +995,7 @@ def sample_camera(
     S = max(8, round(L / aspect))
     w, h = (S, L) if rng.random() < 0.3 else (L, S)
     fill = rng.uniform(1.5, 2.2) if close else rng.uniform(0.8, 1.35)
-    half = math.asin(min(0.99, R / float(np.linalg.norm(world.center - eye))))
-    f = fill * (min(w, h) / 2) / math.tan(half)
+    f = _focal_to_fill(world, eye, fill, min(w, h))
     K = np.array([[f, 0.0, w / 2], [0.0, f, h / 2], [0.0, 0.0, 1.0]])
     return Camera(K, look_at(eye, target, roll), int(w), int(h))
 
@@ -1665,19 +1679,8 @@ def landmark_camera(world: World, azimuth: float, px: int) -> Camera:
     typical photo (1.2 + 0.3 centre height), looking at the centre, with the
     bounding sphere filling the frame.
     """
-    a = math.radians(azimuth)
-    dist = 2.6 * world.radius
-    eye = np.array(
-        [
-            world.center[0] + dist * math.sin(a),
-            world.center[1] - dist * math.cos(a),
-            1.2 + 0.3 * world.center[2],
-        ]
-    )
-    half = math.asin(
-        min(0.99, world.radius / float(np.linalg.norm(world.center - eye)))
-    )
-    f = (px / 2) / math.tan(half)
+    eye = _orbit_eye(world, azimuth, 2.6 * world.radius, 1.2 + 0.3 * world.center[2])
+    f = _focal_to_fill(world, eye, 1.0, px)
     K = np.array([[f, 0.0, px / 2], [0.0, f, px / 2], [0.0, 0.0, 1.0]])
     return Camera(K, look_at(eye, np.asarray(world.center, float)), int(px), int(px))
 
