@@ -46,16 +46,6 @@ def mixture_look(world, preset) -> list[dict]:
     ]
 
 
-def candidate_worlds(cfg, seed: int, world) -> dict:
-    """{style name: the world whose look defines it}, as `scene_styles` draws them."""
-    rng = G._rng(seed, 8)
-    names = [G.STYLES[i] for i in rng.permutation(len(G.STYLES))[: G.N_STYLES]]
-    out = {names[0]: world}
-    for k, name in enumerate(names[1:], start=1):
-        out[name] = G._world(cfg, seed + 7919 * k)
-    return out
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -72,7 +62,7 @@ def main() -> None:
     for seed in range(args.seeds):
         world, _, _, cams, *_ = G._plan(cfg, seed)
         true, styles = G.scene_styles(cfg, seed, world)
-        worlds = candidate_worlds(cfg, seed, world)
+        worlds = G.style_worlds(cfg, seed, world)
         names = list(styles)  # sorted, as the vocabulary lists them
         texts = {
             "v1 mixture": SyntheticEncoder(

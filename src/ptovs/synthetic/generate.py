@@ -465,12 +465,20 @@ def scene_styles(preset: Preset, seed: int, world: World) -> tuple[str, dict]:
     vocabulary lists the candidates sorted by name, so nothing in it says which
     is true; truth/parts.json does.
     """
+    worlds = style_worlds(preset, seed, world)
+    styles = {name: landmark_look(w) for name, w in worlds.items()}
+    return next(iter(worlds)), dict(sorted(styles.items()))
+
+
+def style_worlds(preset: Preset, seed: int, world: World) -> dict[str, World]:
+    """{style name: the landmark whose look defines it}, the true style first
+    (`scene_styles`)."""
     rng = _rng(seed, 8)
     names = [STYLES[i] for i in rng.permutation(len(STYLES))[:N_STYLES]]
-    styles = {names[0]: landmark_look(world)}
+    out = {names[0]: world}
     for k, name in enumerate(names[1:], start=1):
-        styles[name] = landmark_look(_world(preset, seed + 7919 * k))
-    return names[0], dict(sorted(styles.items()))
+        out[name] = _world(preset, seed + 7919 * k)
+    return out
 
 
 # ---------------------------------------------------------------- planning --
