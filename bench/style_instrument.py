@@ -60,7 +60,8 @@ def main() -> None:
     cfg = G.PRESETS[args.preset]
     rows, t0 = [], time.perf_counter()
     for seed in range(args.seeds):
-        world, _, _, cams, *_ = G._plan(cfg, seed)
+        plan = G.plan_scene(args.preset, seed)
+        world, cams = plan.world, plan.cams
         true, styles = G.scene_styles(cfg, seed, world)
         worlds = G.style_worlds(cfg, seed, world)
         names = list(styles)  # sorted, as the vocabulary lists them

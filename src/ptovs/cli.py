@@ -126,10 +126,11 @@ def main(
 @click.argument("out", type=click.Path(path_type=Path))
 @click.option(
     "--preset",
-    type=click.Choice(["tiny", "bench", "scale"]),
+    type=click.Choice(["tiny", "small", "bench", "scale"]),
     default="tiny",
     show_default=True,
-    help="Scene size: tiny (CI, ~12 views), bench (~80 views), scale (~3,000 small views).",
+    help="Scene size: tiny (CI, ~12 views), small (the accuracy benchmark, ~48 "
+    "views), bench (~80 views), scale (~3,000 small views).",
 )
 @click.option(
     "--seed",

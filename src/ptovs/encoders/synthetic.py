@@ -322,6 +322,15 @@ def _embed(c: np.ndarray, modality: int) -> np.ndarray:
     return _normalise(GAP * u + c).astype(np.float32)
 
 
+@functools.lru_cache(maxsize=1024)
+def _swatch_content(key: str) -> np.ndarray:
+    """Content of a swatch (its description as canonical JSON), shared by every
+    encoder of the process: a swatch is a pure function of its description."""
+    out = content(render_swatch(json.loads(key))[None])[0]
+    out.flags.writeable = False
+    return out
+
+
 def phrase_seed(phrase: str) -> int:
     """Stable seed of a phrase (sha256; never Python's salted hash())."""
     return int.from_bytes(hashlib.sha256(phrase.encode("utf-8")).digest()[:8], "little")
@@ -433,7 +442,6 @@ class SyntheticEncoder:
         self._styles: dict[str, list[dict]] = dict(vocab.get("styles", {}))
         # a style embeds like a generic phrase: a normalised mixture of swatches
         self._generic.update({k.strip().lower(): v for k, v in self._styles.items()})
-        self._cache: dict[str, np.ndarray] = {}
 
     @classmethod
     def from_scene(cls, scene_dir: str | Path) -> SyntheticEncoder:
@@ -502,10 +510,7 @@ class SyntheticEncoder:
         return _embed(np.stack([self._text_content(t) for t in texts]), 1)
 
     def _swatch_content(self, desc: dict) -> np.ndarray:
-        key = json.dumps(desc, sort_keys=True)
-        if key not in self._cache:
-            self._cache[key] = content(render_swatch(desc)[None])[0]
-        return self._cache[key]
+        return _swatch_content(json.dumps(desc, sort_keys=True))
 
     def _text_content(self, phrase: str) -> np.ndarray:
         key = phrase.strip()

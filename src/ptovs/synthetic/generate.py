@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ptovs.synthetic.screen import PartScreen, screen_record, screen_world
 from ptovs.synthetic.world import (
     DISTRACTORS,
     Appearance,
@@ -50,7 +51,7 @@ from ptovs.synthetic.world import (
 
 logger = logging.getLogger(__name__)
 
-TRUTH_VERSION = 1
+TRUTH_VERSION = 2  # 2: screened queries, every labelled part a query
 STYLES = (
     "Neoclassical",
     "Gothic",
@@ -79,14 +80,18 @@ _TRACK_DEPTH_RTOL = 0.01  # a track element's pixel-centre depth is within 1% of
 
 @dataclass(frozen=True)
 class Preset:
-    """Size of a generated scene."""
+    """Size of a generated scene.
+
+    Every part labelled in some evaluation view is a query, unless the screen
+    (`ptovs.synthetic.screen`) finds its phrase unanswerable.
+    """
 
     n_train: int
     n_test: int
     n_eval: int
+    n_cand: int  # frontal train cameras the evaluation views are chosen from
     long_side: tuple[int, int]  # range of the image's long side, pixels
     n_parts: tuple[int, int]  # range
-    n_queries: tuple[int, int]  # range, distractor not counted
     aa: int  # samples per pixel (1 or 5)
     points_per_image: int
     track_keep: float  # chance to keep a visible observation in a track
@@ -99,21 +104,35 @@ PRESETS: dict[str, Preset] = {
         n_train=12,
         n_test=1,
         n_eval=2,
+        n_cand=8,
         long_side=(88, 104),
         n_parts=(3, 3),
-        n_queries=(2, 2),
         aa=5,
         points_per_image=60,
         track_keep=1.0,
         swatch_px=32,
     ),
+    # the accuracy instrument's scenes (bench/accuracy.py): bench's landmarks and
+    # evaluation design at about half the image side and 60 % of the views
+    "small": Preset(
+        n_train=48,
+        n_test=4,
+        n_eval=20,
+        n_cand=30,
+        long_side=(176, 256),
+        n_parts=(5, 7),
+        aa=5,
+        points_per_image=100,
+        track_keep=1.0,
+        swatch_px=64,
+    ),
     "bench": Preset(
         n_train=80,
         n_test=8,
-        n_eval=12,
+        n_eval=20,
+        n_cand=42,
         long_side=(240, 400),
         n_parts=(6, 8),
-        n_queries=(3, 5),
         aa=5,
         points_per_image=120,
         track_keep=1.0,
@@ -123,9 +142,9 @@ PRESETS: dict[str, Preset] = {
         n_train=3000,
         n_test=60,
         n_eval=4,
+        n_cand=14,
         long_side=(60, 68),
         n_parts=(6, 8),
-        n_queries=(3, 5),
         aa=1,
         points_per_image=8,
         track_keep=0.02,
@@ -484,44 +503,45 @@ def style_worlds(preset: Preset, seed: int, world: World) -> dict[str, World]:
 # ---------------------------------------------------------------- planning --
 
 
-def _choose_queries_and_eval(
-    rng: np.random.Generator,
-    world: World,
-    preset: Preset,
-    cand: list[int],
-    cams: list[Camera],
-) -> tuple[list[int], list[int]]:
-    """Query part ids and evaluation views, from a truth-only pass over candidates."""
-    counts = {}
+def _choose_eval(
+    world: World, preset: Preset, cand: list[int], cams: list[Camera]
+) -> tuple[list[int], dict[int, np.ndarray]]:
+    """Evaluation views, from a truth-only pass over the candidate cameras.
+
+    First a view for each part seen (>= 1 % of an image) in some candidate, in
+    part order, then the candidates that see the most parts; `preset.n_eval` in
+    all (so on `tiny` a third part may be labelled in no view, and is then no
+    query). Returns the views and the candidates' part-id maps.
+    """
+    counts, truths = {}, {}
     for i in cand:
         pid, _ = render_truth(world, cams[i])
+        truths[i] = pid
         m = _min_px(cams[i], 0.01, 12)
         counts[i] = {p.id: int((pid == p.id).sum()) >= m for p in world.parts}
-    n_q = int(rng.integers(preset.n_queries[0], preset.n_queries[1] + 1))
-    seen = {p.id: sum(counts[i][p.id] for i in cand) for p in world.parts}
-    order = sorted(
-        (p.id for p in world.parts if p.name != "wall"),
-        key=lambda k: (-min(seen[k], 3), rng.random()),
-    )
-    queries = [k for k in order if seen[k] > 0][:n_q]
-    if len(queries) < n_q and seen[0] > 0:  # the wall only when nothing else is seen
-        queries.append(0)
-    if not queries:
+    seen = [p.id for p in world.parts if any(counts[i][p.id] for i in cand)]
+    if not seen:
         raise RuntimeError("no part is visible in any evaluation candidate")
-    queries.sort()
     chosen: list[int] = []
-    for q in queries:  # every query gets at least one evaluation view
+    for q in seen:  # every part seen gets at least one evaluation view
         for i in cand:
             if counts[i][q] and i not in chosen:
                 chosen.append(i)
                 break
-    score = sorted(cand, key=lambda i: -sum(counts[i][q] for q in queries))
+    score = sorted(cand, key=lambda i: -sum(counts[i][q] for q in seen))
     for i in score:
         if len(chosen) >= preset.n_eval:
             break
-        if i not in chosen and any(counts[i][q] for q in queries):
+        if i not in chosen and any(counts[i][q] for q in seen):
             chosen.append(i)
-    return queries, sorted(chosen[: max(preset.n_eval, len(queries))])
+    return sorted(chosen[: preset.n_eval]), truths
+
+
+def label_mask(part_id: np.ndarray, pid: int, cam: Camera) -> np.ndarray | None:
+    """A part's label mask in a view, or None when the view does not label it
+    (fewer pixels than 0.2 % of the image, at least 12)."""
+    mask = query_mask(part_id, [pid])
+    return mask if mask.sum() >= _min_px(cam, 0.002, 12) else None
 
 
 def _prepare_out(out: Path, name: str) -> tuple[Path, Path]:
@@ -567,28 +587,74 @@ def _world(cfg: Preset, seed: int) -> World:
     return build_world(rng, int(rng.integers(cfg.n_parts[0], cfg.n_parts[1] + 1)))
 
 
-def _plan(cfg: Preset, seed: int):
-    """World, test ids, stems, cameras, eval ids, queries and distractor of a seed."""
+@dataclass(frozen=True)
+class ScenePlan:
+    """Everything about a seed's scene decided before any photo is rendered."""
+
+    world: World  # with the screen's redrawn textures
+    test_ids: set[int]
+    stems: list[str]
+    cams: list[Camera]
+    eval_ids: list[int]
+    queries: dict[str, list[int]]  # query phrase -> part ids (screened)
+    distractor: str
+    screen: dict[int, PartScreen]  # the screen's verdict on every part
+
+
+def plan_scene(preset: str, seed: int) -> ScenePlan:
+    """The plan of (preset, seed): world, cameras, evaluation views, screened queries.
+
+    Renders only truth maps and the screen's neutral crops, so every preset's
+    queries and labels can be checked over many seeds cheaply.
+    """
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose from {sorted(PRESETS)}")
+    cfg = PRESETS[preset]
     world = _world(cfg, seed)
     n_img = cfg.n_train + cfg.n_test
-    plan = _rng(seed, 1)
-    test_ids = set(plan.choice(n_img, cfg.n_test, replace=False).tolist())
+    draw = _rng(seed, 1)
+    test_ids = set(draw.choice(n_img, cfg.n_test, replace=False).tolist())
     train_ids = [i for i in range(n_img) if i not in test_ids]
-    n_cand = min(len(train_ids), 3 * cfg.n_eval + 2)
-    cand = sorted(plan.choice(train_ids, n_cand, replace=False).tolist())
+    n_cand = min(len(train_ids), cfg.n_cand)
+    cand = sorted(draw.choice(train_ids, n_cand, replace=False).tolist())
     stems = [
-        f"{seed:02d}{i:06d}_{int(plan.integers(10**9, 10**10))}" for i in range(n_img)
+        f"{seed:02d}{i:06d}_{int(draw.integers(10**9, 10**10))}" for i in range(n_img)
     ]
     cams = [
         sample_camera(_rng(seed, 2, i), world, cfg.long_side, frontal=i in cand)
         for i in range(n_img)
     ]
-    query_parts, eval_ids = _choose_queries_and_eval(plan, world, cfg, cand, cams)
+    eval_ids, cand_truths = _choose_eval(world, cfg, cand, cams)
+    eval_cams = [cams[i] for i in eval_ids]
+    truths = [cand_truths[i] for i in eval_ids]
+    labelled = [
+        p.id
+        for p in world.parts
+        if any(
+            label_mask(t, p.id, c) is not None
+            for t, c in zip(truths, eval_cams, strict=True)
+        )
+    ]
+    world, verdict = screen_world(
+        world,
+        seed,
+        eval_cams,
+        truths,
+        labelled,
+        lambda w: scene_vocabulary(w, cfg, []),
+        label_mask,
+    )
+    queries = {p.query: [p.id] for p in world.parts if verdict[p.id].answerable}
+    if not queries:
+        raise RuntimeError(
+            f"seed {seed}: no part's phrase passes the answerability screen"
+        )
     used = {p.query for p in world.parts}
     distractors = [d for d in DISTRACTORS if d not in used]
-    distractor = distractors[int(plan.integers(len(distractors)))]
-    queries = {world.parts[k].query: [k] for k in query_parts}
-    return world, test_ids, stems, cams, eval_ids, queries, distractor
+    distractor = distractors[int(draw.integers(len(distractors)))]
+    return ScenePlan(
+        world, test_ids, stems, cams, eval_ids, queries, distractor, verdict
+    )
 
 
 def eval_labels(preset: str, seed: int) -> list[dict]:
@@ -597,10 +663,10 @@ def eval_labels(preset: str, seed: int) -> list[dict]:
     Renders only the evaluation views (labels do not depend on appearance), so
     every preset's labels can be checked over many seeds cheaply.
     """
-    cfg = PRESETS[preset]
-    world, _, stems, cams, eval_ids, queries, _ = _plan(cfg, seed)
+    plan = plan_scene(preset, seed)
+    world, stems, cams, queries = plan.world, plan.stems, plan.cams, plan.queries
     out = []
-    for i in eval_ids:
+    for i in plan.eval_ids:
         part_id, _ = render_truth(world, cams[i])
         out.append(
             isat_label(
@@ -650,16 +716,19 @@ def generate_scene(
     truth_dir = scene / "synthetic" / "truth"
     image_dir = scene / "dense" / "images"
 
-    world, test_ids, stems, cams, eval_ids, queries, distractor = _plan(cfg, seed)
+    plan = plan_scene(preset, seed)
+    world, stems, cams, queries = plan.world, plan.stems, plan.cams, plan.queries
+    eval_ids, test_ids, distractor = plan.eval_ids, plan.test_ids, plan.distractor
     n_img = cfg.n_train + cfg.n_test
     eval_set = set(eval_ids)
     logger.info(
-        "%s: %d parts, queries %s (+ distractor %r), %d eval views",
+        "%s: %d parts, queries %s (+ distractor %r), %d eval views; screen: %s",
         name,
         len(world.parts),
         list(queries),
         distractor,
         len(eval_ids),
+        ", ".join(f"{v.query} {v.status}" for v in plan.screen.values()),
     )
 
     records: list[dict] = []
@@ -743,6 +812,7 @@ def generate_scene(
         style_candidates=list(vocab["styles"]),
         preset=preset,
         seed=seed,
+        screen=screen_record(plan.screen),
         version=TRUTH_VERSION,
     )
     _write_json(truth_dir / "parts.json", parts)
@@ -985,3 +1055,38 @@ def rerender(
     else:
         raise ValueError(f"unknown occluders {occluders!r}")
     return render(world, cam, app, bbs, aa=aa), app
+
+
+def clean_scene(scene_dir: Path, out: Path, progress: bool = False) -> Path:
+    """A copy of a generated scene whose photos are clean re-renders.
+
+    Every image is rendered again at its own camera under the neutral appearance
+    without occluders, at the same size, and written as the generator writes
+    photos (JPEG q95, 4:4:4). Everything else (model, split, labels, truth,
+    vocabulary) is copied unchanged, labels into out/../label/<name>. The clean-
+    feature oracle of bench/accuracy.py extracts its features from these.
+
+    Args:
+        scene_dir: a generated scene (out of `generate_scene`).
+        out: the new scene folder (replaced if it holds a synthetic scene).
+        progress: show a tqdm bar over images.
+
+    Returns:
+        `out`.
+    """
+    scene_dir, out = Path(scene_dir), Path(out)
+    world, cams = load_truth(scene_dir)
+    scene, label = _prepare_out(out.parent, out.name)
+    shutil.rmtree(scene)
+    shutil.copytree(scene_dir, scene, ignore=shutil.ignore_patterns("images"))
+    (scene / "dense" / "images").mkdir()
+    src_labels = scene_dir.parent / "label" / scene_dir.name
+    if src_labels.is_dir():
+        shutil.rmtree(label)
+        shutil.copytree(src_labels, label)
+    aa = PRESETS[cams["preset"]].aa if cams.get("preset") in PRESETS else 5
+    for rec in tqdm(cams["images"], desc=f"clean {out.name}", disable=not progress):
+        view, _ = rerender(world, rec, appearance="neutral", occluders="none", aa=aa)
+        path = scene / "dense" / "images" / rec["name"]
+        cv2.imwrite(str(path), cv2.cvtColor(view.image, cv2.COLOR_RGB2BGR), _JPEG)
+    return scene

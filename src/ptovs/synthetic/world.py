@@ -898,6 +898,17 @@ class Camera:
             v = self.K[1, 1] * xc[1] / z + self.K[1, 2]
         return np.stack([u, v], axis=1), z
 
+    def window(self, i0: int, i1: int, j0: int, j1: int) -> Camera:
+        """The camera of the pixel rows i0:i1, columns j0:j1 of this image.
+
+        Its pixel (i, j) casts exactly the rays of this camera's pixel
+        (i + i0, j + j0), so rendering a window renders those pixels alone.
+        """
+        K = self.K.copy()
+        K[0, 2] -= j0
+        K[1, 2] -= i0
+        return Camera(K, self.cam_from_world, int(j1 - j0), int(i1 - i0))
+
     def to_dict(self) -> dict:
         return {
             "width": int(self.width),
