@@ -1,6 +1,7 @@
 # ptovs: set up, demo, test, benchmark; and run the pipeline over DATA/* scenes.
 #   make demo          fresh machine → venv, tiny synthetic scene, every stage, masks, metrics, a PLY
 #   make test          the test suite (what CI runs)
+#   make bench-accuracy  the accuracy instrument: 18 seeds, every variant, CIs (~90 min)
 #   make -j3 all       every scene under DATA in parallel, stages in order, then the
 #                      per-scene table (a failing scene is marked, the others go on)
 PYTHON ?= python3
@@ -22,7 +23,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(WORK) --config $(CONFIG)
 # on the columns, where "Tiled Roof" selects ground and floaters)
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo test lint format bench all scenes table status clean-work $(SCENES)
+.PHONY: setup demo test lint format bench bench-accuracy all scenes table status clean-work $(SCENES)
 
 setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml
@@ -60,10 +61,18 @@ bench: setup
 	$(BIN)/python bench/reconstruct.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
 	$(BIN)/python bench/extract.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
 	$(BIN)/python bench/train.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
-	$(BIN)/python bench/query.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
+	$(BIN)/python bench/query.py --seeds 0 --data $(DATA) --work $(WORK)/bench
 	$(BIN)/python bench/style_instrument.py --preset bench --seeds 12 --out $(WORK)/bench/style_instrument.json
 	$(BIN)/python bench/style_instrument.py --preset tiny --seeds 30 --out $(WORK)/bench/style_instrument.json
 	$(BIN)/python bench/apps.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
+
+# the accuracy instrument (issue 20): ACC_SEEDS seeds of the `small` preset, every
+# variant, ceilings, cluster-bootstrap CIs; dev = the first half of the seeds, test
+# = the second. Resumes where a killed run stopped. Tables: work/accuracy/accuracy.md
+ACC_SEEDS ?= 0-17
+bench-accuracy: setup
+	$(BIN)/python bench/accuracy.py --preset small --seeds $(ACC_SEEDS) \
+	  --data $(DATA)/accuracy --work $(WORK)/accuracy --plot docs/img/speed_vs_miou.png
 
 # threads per scene job: the cores shared among make's parallel jobs (-jN; a bare -j
 # counts as one job per core), at least one. OpenMP teams on oversubscribed cores

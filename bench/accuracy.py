@@ -1,0 +1,771 @@
+"""Accuracy benchmark v2 (issue 20): an instrument that can see a 0.05 mIoU difference.
+
+    make bench-accuracy                                   # what docs/benchmarks.md reports
+    python bench/accuracy.py --preset small --seeds 0-17  # the same, by hand
+    python bench/accuracy.py --report-only                # tables and plot from the results
+    python bench/accuracy.py --preset bench --seeds 0-2 --config configs/default.toml \\
+        --data data --work work/accuracy-bench --compare work/accuracy   # the ranking check
+
+Every seed is a new synthetic landmark (`ptovs synth-scene`): every part labelled in
+its evaluation views is a query unless the generator's screen finds its phrase
+unanswerable (`ptovs.synthetic.screen`). Per seed, in a subprocess of its own (two
+at a time on two cores, one thread each), the instrument measures, on every
+(evaluation view, query) pair:
+
+  male                the full method (paper defaults)
+  langsplat           LangSplat's recipe on plain-3DGS geometry
+  langsplat-wild      the same recipe on the in-the-wild geometry
+  oracle              the full method's language recipe on clean features: every
+                      photo re-rendered at its camera under neutral light without
+                      occluders (4:4:4 JPEG, same size), its features imported in
+                      every appearance slot
+  2d                  2-D ceiling: the pipeline's relevancy on the raw 512-d segment
+                      features of the evaluation photo itself (no field, no AE)
+  2d-ae               the same features through the full method's autoencoder
+  slot-orig, slot-nov1..3   the full method's field, one appearance slot alone
+  no-multi-appearance, no-tum-aum, no-tum, no-aum, no-bg-filter, imglvlmax,
+  pixmax, pixavg, pixweighted   Table 3 rows 1 and 6-13 (ptovs.variants)
+  budget-300, budget-3k         train-male at two fixed iteration budgets
+
+A finished seed's pairs go to <work>/results/<scene>.json (atomically); a rerun
+skips the variants a seed already has, and an interrupted seed resumes from the
+artifact cache (every stage is cached; the training stages checkpoint).
+
+The report treats each (seed, query) as one cluster (its pairs share the landmark,
+the part and the field): mIoU is the mean of cluster means; a comparison with the
+full method is the mean paired per-cluster difference with a 95 % cluster-bootstrap
+interval (`ptovs.stats`). Seeds are split into a fixed dev half (the first half of
+the list: for choosing anything) and a test half (for reporting only).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+VERSION = 1  # bump when what a seed's results mean changes
+
+# label -> (ptovs.variants name, extra --set items per stage); the order is the
+# order a seed computes them in (the full method's chain first: most reuse it)
+CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
+    "male": ("male", {}),
+    **{
+        f"slot-{a}": ("male", {"query": [f'appearances=["{a}"]']})
+        for a in ("orig", "nov1", "nov2", "nov3")
+    },
+    **{
+        v: (v, {})
+        for v in (
+            "no-bg-filter",
+            "imglvlmax",
+            "pixmax",
+            "pixavg",
+            "pixweighted",
+            "no-multi-appearance",
+            "no-tum-aum",
+            "no-tum",
+            "no-aum",
+            "budget-300",
+            "budget-3k",
+            "langsplat-wild",
+            "langsplat",
+        )
+    },
+    "oracle": ("male", {}),  # + the clean features' import_dir (`oracle_features`)
+}
+FEATURE_LABELS = ("2d", "2d-ae")
+LABELS = ("male", *FEATURE_LABELS, *(k for k in CHAIN_LABELS if k != "male"))
+TABLE3 = {  # label -> Table 3 row of the paper
+    "no-multi-appearance": 1,
+    "no-tum-aum": 6,
+    "no-tum": 7,
+    "no-aum": 8,
+    "no-bg-filter": 9,
+    "imglvlmax": 10,
+    "pixmax": 11,
+    "pixavg": 12,
+    "pixweighted": 13,
+    "male": 14,
+}
+CHAIN_LOSS = (  # the chain from the photo's features to the fused field
+    "2d",
+    "2d-ae",
+    "slot-orig",
+    "slot-nov1",
+    "slot-nov2",
+    "slot-nov3",
+    "male",
+    "imglvlmax",
+    "pixmax",
+    "pixavg",
+    "pixweighted",
+)
+CEILINGS = ("oracle", "2d")
+ANSWERED = 0.1  # a cluster some method answers has a mean IoU of at least this
+
+
+# ------------------------------------------------------------------ one seed --
+
+
+def _scene(data: Path, preset: str, seed: int) -> Path:
+    scene = data / f"{preset}_s{seed}"
+    if not (scene / "synthetic" / "truth" / "cameras.json").is_file():
+        from ptovs.synthetic import generate_scene
+
+        generate_scene(data, preset, seed, progress=False)
+    return scene
+
+
+def _run_s(art) -> float:
+    return float(json.loads(art.attrs["timings_json"])["run_s"])
+
+
+def _build(chain, stage: str) -> tuple[object, dict[str, float]]:
+    """Every stage `stage` needs, then `stage` (cached ones return at once):
+    its open artifact and each stage's recorded run time."""
+    from ptovs.stage import execute
+
+    secs = {}
+    for st in chain.closure(stage):
+        art = execute(chain, st)
+        secs[st] = _run_s(art)
+        if st == stage:
+            return art, secs
+        art.close()
+    raise AssertionError(f"{stage} not in its own closure")
+
+
+def _chain_pairs(ctx, ref, variant: str, sets: dict) -> tuple[list[dict], dict]:
+    """The variant's chain through evaluate, then its pairs."""
+    from ptovs.stage import Chain
+    from ptovs.stages.evaluate import read_metrics
+    from ptovs.variants import variant_sets
+
+    art, secs = _build(Chain(ctx, ref, variant_sets(variant, sets)), "evaluate")
+    _, pairs = read_metrics(art)
+    art.close()
+    return pairs, secs
+
+
+def oracle_features(ctx, ref, scene: Path, work: Path) -> Path:
+    """The clean-feature oracle's LangSplat folder for `scene` (cached).
+
+    Every photo re-rendered clean (`clean_scene`), its segment features extracted
+    exactly as the photos' are, written for the original and every render slot of
+    the full method's chain (so uncertainty is 0 and every slot sees clean
+    features).
+    """
+    from ptovs.artifacts import read_json_dataset
+    from ptovs.features import SegmentFeatures, langsplat_suffix, write_langsplat
+    from ptovs.stage import Chain, RunContext, resolve_scene
+    from ptovs.synthetic.generate import clean_scene
+
+    folder = work / "oracle" / scene.name / "features"
+    if (folder / "done").is_file():
+        return folder
+    clean = clean_scene(scene, work / "oracle" / "data" / scene.name)
+    octx = RunContext(work / "oracle" / "work", ctx.config)
+    oref = resolve_scene(octx, None, clean)
+    art, _ = _build(Chain(octx, oref, {"extract-features": ["images=orig"]}),
+                    "extract-features")  # fmt: skip
+    levels = tuple(read_json_dataset(art.root()["levels_json"])["levels"])
+    renders, _ = _build(Chain(ctx, ref), "render-appearances")
+    slots = read_json_dataset(renders.root()["slots_json"])["slots"]
+    renders.close()
+    novel = [s for s in slots if s != "self"]
+    for name in art.names():
+        f = SegmentFeatures.from_view(art[name], "orig")
+        stem = Path(name).stem
+        for app in ["orig", *slots]:
+            write_langsplat(folder, stem, f, levels, langsplat_suffix(app, novel))
+    art.close()
+    (folder / "done").write_text("ok\n")
+    return folder
+
+
+def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
+    """The 2-D ceiling ("2d") and the same through the full method's AE ("2d-ae"),
+    whichever `labels` asks for."""
+    import torch
+
+    from ptovs.encoders.synthetic import SyntheticEncoder
+    from ptovs.features import SegmentFeatures
+    from ptovs.field.relevancy import BACKGROUND_PHRASES, CANONICAL, answer
+    from ptovs.scene import load_labels
+    from ptovs.stage import Chain
+    from ptovs.stages.evaluate import pair_metrics
+    from ptovs.stages.train_ae import load_autoencoder
+
+    fe, _ = _build(Chain(ctx, ref, {"extract-features": ["images=orig"]}),
+                   "extract-features")  # fmt: skip
+    male = Chain(ctx, ref)
+    ae = None
+    if "2d-ae" in labels:
+        ae_art, _ = _build(male, "train-ae")
+        ae = load_autoencoder(ae_art).eval()
+        ae_art.close()
+    settings = male.config("query").settings()
+    sc = ref.load()
+    queries = sorted({q for v in sc.labelled_views() for q in load_labels(sc, v)})
+    phrases = list(dict.fromkeys([*queries, *CANONICAL, *BACKGROUND_PHRASES]))
+    emb = torch.from_numpy(SyntheticEncoder.from_scene(sc.root).encode_texts(phrases))
+    idx = {p: i for i, p in enumerate(phrases)}
+    canon = [idx[p] for p in CANONICAL]
+    bg = [idx[p] for p in BACKGROUND_PHRASES]
+    out: dict[str, list[dict]] = {lab: [] for lab in FEATURE_LABELS if lab in labels}
+    for view in sc.labelled_views():
+        sf = SegmentFeatures.from_view(fe[view.name], "orig")
+        cos: dict[str, list] = {lab: [] for lab in out}
+        for lv in range(sf.levels):  # per segment row, then painted per pixel
+            rows = {"2d": torch.from_numpy(sf.level_table(lv).astype(np.float32))}
+            if ae is not None:
+                with torch.no_grad():
+                    rows["2d-ae"] = ae.decode(ae.encode(rows["2d"]))
+            local = torch.from_numpy(sf.local(lv).astype(np.int64))
+            valid = local >= 0
+            for label in out:
+                c = rows[label] @ emb.float().T  # [n, K]
+                dense = torch.zeros((*local.shape, c.shape[1]))
+                dense[valid] = c[local[valid]]
+                cos[label].append(dense)
+        gts = load_labels(sc, view, sf.seg.shape[1:])
+        qidx = [idx[q] for q in gts]
+        for label in out:
+            stacked = torch.stack(cos[label])[:, None]  # [L, 1, H, W, K]
+            for cat, gt in gts.items():
+                if not gt.any():
+                    continue
+                r = answer(stacked, idx[cat], canon, bg, settings, qidx)
+                m = pair_metrics(r.mask, gt)
+                out[label].append({"view": view.name, "query": cat, **m})
+    fe.close()
+    return out
+
+
+def run_seed(args: argparse.Namespace, seed: int) -> None:
+    """Every missing label of one seed; results written after each label."""
+    import logging
+
+    import torch
+
+    from ptovs.artifacts import write_atomic
+    from ptovs.config import load_config
+    from ptovs.stage import RunContext, resolve_scene
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    torch.set_num_threads(max(1, args.threads))
+    scene = _scene(args.data, args.preset, seed)
+    path = _result_path(args.work, scene.name)
+    res = _load_result(path, _digest(args))
+    cams = json.loads((scene / "synthetic" / "truth" / "cameras.json").read_text())
+    res.update(
+        seed=seed,
+        preset=args.preset,
+        scene=scene.name,
+        digest=_digest(args),
+        hard={r["name"]: bool(r["hard"]) for r in cams["images"] if r["eval"]},
+        screen=json.loads((scene / "synthetic/truth/parts.json").read_text())["screen"],
+    )
+    res.setdefault("labels", {})
+    ctx = RunContext(args.work / "runs", load_config(args.config))
+    ref = resolve_scene(ctx, None, scene)
+    todo = [lab for lab in args.labels if lab not in res["labels"]]
+    for label in todo:
+        if label in res["labels"]:  # computed with the other feature label
+            continue
+        t0 = time.perf_counter()
+        if label in FEATURE_LABELS:
+            feats = [lab for lab in FEATURE_LABELS if lab in todo]
+            for lab, pairs in feature_pairs(ctx, ref, feats).items():
+                res["labels"][lab] = _entry(pairs, {}, time.perf_counter() - t0)
+        else:
+            variant, sets = CHAIN_LABELS[label]
+            if label == "oracle":
+                folder = oracle_features(ctx, ref, scene, args.work)
+                sets = {"extract-features": [f"import_dir={folder.resolve()}"]}
+            pairs, secs = _chain_pairs(ctx, ref, variant, sets)
+            res["labels"][label] = _entry(pairs, secs, time.perf_counter() - t0)
+        write_atomic(path, json.dumps(res))
+        print(f"{scene.name} {label}: {time.perf_counter() - t0:.1f} s", flush=True)
+
+
+def _entry(pairs: list[dict], secs: dict, wall: float) -> dict:
+    keep = ("view", "query", "iou", "pa", "p")
+    return {
+        "pairs": [{k: p[k] for k in keep} for p in pairs],
+        "stage_s": secs,
+        "wall_s": round(wall, 2),
+    }
+
+
+def _result_path(work: Path, scene: str) -> Path:
+    return work / "results" / f"{scene}.json"
+
+
+def _digest(args: argparse.Namespace) -> str:
+    """What a seed's results depend on besides the code: the config file and
+    the instrument's version (artifact keys cover the rest)."""
+    cfg = Path(args.config).read_bytes() if args.config else b""
+    return hashlib.sha256(cfg + f"v{VERSION}".encode()).hexdigest()[:16]
+
+
+def _load_result(path: Path, digest: str) -> dict:
+    if path.is_file():
+        try:
+            res = json.loads(path.read_text())
+        except ValueError:
+            return {}
+        if res.get("digest") == digest:
+            return res
+    return {}
+
+
+# ------------------------------------------------------------------ the runs --
+
+
+def run_all(args: argparse.Namespace) -> None:
+    """Seeds in `args.jobs` subprocesses; finished seeds are skipped."""
+    pending = []
+    for seed in args.seeds:
+        res = _load_result(
+            _result_path(args.work, f"{args.preset}_s{seed}"), _digest(args)
+        )
+        if all(lab in res.get("labels", {}) for lab in args.labels):
+            print(f"seed {seed}: done earlier, skipped", flush=True)
+            continue
+        pending.append(seed)
+    if not pending:
+        return
+    threads = max(1, (os.cpu_count() or 1) // args.jobs)
+    env = dict(os.environ, OMP_NUM_THREADS=str(threads), PYTHONUNBUFFERED="1")
+    logs = args.work / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    running: dict[int, tuple[subprocess.Popen, float]] = {}
+    t_all = time.perf_counter()
+    failed = []
+    while pending or running:
+        while pending and len(running) < args.jobs:
+            seed = pending.pop(0)
+            cmd = [sys.executable, __file__, *_forward(args), "--one-seed", str(seed),
+                   "--threads", str(threads)]  # fmt: skip
+            log = open(logs / f"{args.preset}_s{seed}.log", "a")  # noqa: SIM115
+            running[seed] = (
+                subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env),
+                time.perf_counter(),
+            )
+            log.close()
+            print(f"seed {seed}: started", flush=True)
+        time.sleep(1.0)
+        for seed, (proc, t0) in list(running.items()):
+            if proc.poll() is None:
+                continue
+            del running[seed]
+            dt = time.perf_counter() - t0
+            if proc.returncode:
+                failed.append(seed)
+                print(f"seed {seed}: FAILED after {dt:.0f} s; see "
+                      f"{logs / f'{args.preset}_s{seed}.log'}", flush=True)  # fmt: skip
+            else:
+                print(f"seed {seed}: done in {dt:.0f} s", flush=True)
+    print(f"all seeds: {time.perf_counter() - t_all:.0f} s", flush=True)
+    if failed:
+        raise SystemExit(f"seeds {failed} failed; rerun to resume them")
+
+
+def _forward(args: argparse.Namespace) -> list[str]:
+    out = ["--preset", args.preset, "--data", str(args.data), "--work", str(args.work)]
+    out += ["--labels", *args.labels]
+    if args.config:
+        out += ["--config", str(args.config)]
+    return out
+
+
+# ---------------------------------------------------------------- the report --
+
+
+def load_results(work: Path, preset: str, seeds: list[int]) -> dict[int, dict]:
+    out = {}
+    for s in seeds:
+        path = _result_path(work, f"{preset}_s{s}")
+        if path.is_file():
+            out[s] = json.loads(path.read_text())
+    return out
+
+
+def _records(results: dict[int, dict], label: str, hard: bool | None = None) -> list:
+    recs = []
+    for seed, res in results.items():
+        entry = res["labels"].get(label)
+        if entry is None:
+            continue
+        for p in entry["pairs"]:
+            if hard is not None and res["hard"].get(p["view"], False) != hard:
+                continue
+            recs.append({**p, "seed": seed})
+    return recs
+
+
+def summarise(results: dict[int, dict], labels: list[str]) -> dict:
+    """Per label: cluster-mean mIoU / mPA / mP with CIs, the paired difference to
+    the full method, easy and hard views apart, and the language-stage time."""
+    from ptovs.stats import bootstrap_mean, cluster_means, paired_difference
+
+    out: dict = {}
+    full = cluster_means(_records(results, "male"))
+    for label in labels:
+        recs = _records(results, label)
+        if not recs:
+            continue
+        row: dict = {"seeds": len({r["seed"] for r in recs}), "pairs": len(recs)}
+        for key, name in (("iou", "miou"), ("pa", "mpa"), ("p", "mp")):
+            cm = cluster_means(recs, key)
+            row[name] = bootstrap_mean(np.array(list(cm.values())))
+        cm = cluster_means(recs)
+        row["clusters"] = len(cm)
+        if label != "male" and full:
+            row["diff"] = paired_difference(cm, full)
+        for hard in (False, True):
+            sub = cluster_means(_records(results, label, hard))
+            row["hard" if hard else "easy"] = (
+                float(np.mean(list(sub.values()))) if sub else float("nan")
+            )
+        secs = [
+            sum(
+                v
+                for k, v in res["labels"][label]["stage_s"].items()
+                if k in ("train-ae", "train-male", "query", "evaluate")
+            )
+            if res["labels"][label]["stage_s"]
+            else res["labels"][label]["wall_s"]
+            for res in results.values()
+            if label in res["labels"]
+        ]
+        row["language_s"] = float(np.mean(secs))
+        out[label] = row
+    return out
+
+
+def unanswered(results: dict[int, dict], labels: list[str]) -> tuple[int, int, list]:
+    """Clusters where every label's mean IoU is below ANSWERED."""
+    from ptovs.stats import cluster_means
+
+    per = {lab: cluster_means(_records(results, lab)) for lab in labels}
+    clusters = sorted(set().union(*(set(v) for v in per.values())))
+    bad = [c for c in clusters if all(per[lab].get(c, 0.0) < ANSWERED for lab in per)]
+    return len(bad), len(clusters), bad
+
+
+def chain_loss(results: dict[int, dict]) -> list[str]:
+    """Per seed and overall: mIoU at each step of CHAIN_LOSS (cluster means)."""
+    from ptovs.stats import cluster_means
+
+    head = "| seed | " + " | ".join(CHAIN_LOSS) + " |"
+    lines = [head, "|" + "---|" * (len(CHAIN_LOSS) + 1)]
+
+    def cells(res_sub: dict[int, dict]) -> list[str]:
+        out = []
+        for lab in CHAIN_LOSS:
+            cm = cluster_means(_records(res_sub, lab))
+            out.append(f"{np.mean(list(cm.values())):.3f}" if cm else "–")
+        return out
+
+    for seed, res in results.items():
+        lines.append(f"| {seed} | " + " | ".join(cells({seed: res})) + " |")
+    lines.append("| **all** | " + " | ".join(cells(results)) + " |")
+    return lines
+
+
+def report(args: argparse.Namespace) -> str:
+    results = load_results(args.work, args.preset, args.seeds)
+    if not results:
+        raise SystemExit(f"no results under {args.work / 'results'}; run first")
+    dev = [s for s in args.dev if s in results]
+    test = [s for s in args.seeds if s not in args.dev and s in results]
+    labels = [lab for lab in args.labels if lab in LABELS]
+    md = [
+        f"Preset `{args.preset}`, seeds {sorted(results)} (dev {dev}, test {test}); "
+        f"config `{args.config}`; {platform.node() or 'this machine'}, "
+        f"{time.strftime('%Y-%m-%d')}.",
+        "",
+    ]
+    md += _screen_lines(results)
+    summaries = {}
+    for half, seeds in (("dev", dev), ("test", test)):
+        if not seeds:
+            continue
+        sub = {s: results[s] for s in seeds}
+        summ = summarise(sub, labels)
+        summaries[half] = summ
+        md += ["", f"### {half} seeds {seeds}", ""]
+        md += _main_table(summ)
+        bad, total, which = unanswered(sub, labels)
+        md += [
+            "",
+            f"Clusters no variant answers (every mean IoU < {ANSWERED}, oracle and "
+            f"2-D ceiling included): **{bad} of {total} ({bad / max(total, 1):.1%})**"
+            + (f": {', '.join(f'{s}/{q}' for s, q in which)}" if which else "."),
+        ]
+        md += _ceiling_lines(summ)
+    md += ["", "### Where mIoU is lost (all seeds)", ""]
+    md += chain_loss(results)
+    md += ["", "### Time", ""]
+    md += _time_lines(results)
+    if args.compare:
+        md += ["", f"### Ranking against `{args.compare}`", ""]
+        md += compare(args, results, labels)
+    out = "\n".join(md) + "\n"
+    (args.work / "accuracy.json").write_text(json.dumps(_jsonable(summaries), indent=1))
+    (args.work / "accuracy.md").write_text(out)
+    if "test" in summaries and args.plot:
+        _plot(summaries["test"], args.plot)
+    return out
+
+
+def _jsonable(x):
+    from ptovs.stats import Estimate
+
+    if isinstance(x, Estimate):
+        return {"mean": x.mean, "lo": x.lo, "hi": x.hi, "n": x.n}
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    return x
+
+
+def _screen_lines(results: dict[int, dict]) -> list[str]:
+    counts: dict[str, int] = {}
+    attempts = []
+    for res in results.values():
+        for p in res["screen"]["parts"].values():
+            counts[p["status"]] = counts.get(p["status"], 0) + 1
+            if p["status"] == "redrawn":
+                attempts.append(p["attempt"])
+    total = sum(counts.values())
+    seen = total - counts.get("unseen", 0)
+    return [
+        f"Screen: {seen} parts labelled in {len(results)} scenes; "
+        f"{counts.get('pass', 0)} passed as drawn, {counts.get('redrawn', 0)} "
+        f"redrawn ({np.mean(attempts) if attempts else 0:.1f} draws on average), "
+        f"{counts.get('dropped', 0)} dropped; {counts.get('unseen', 0)} parts "
+        "unlabelled (not queries).",
+    ]
+
+
+def _main_table(summ: dict) -> list[str]:
+    lines = [
+        "| variant | Table 3 row | mIoU [95 % CI] | mPA | mP | Δ mIoU vs male "
+        "[95 % CI] | CI excludes 0 | easy / hard views | language stages (s) | "
+        "clusters |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for label, row in summ.items():
+        diff = row.get("diff")
+        lines.append(
+            f"| {label} | {TABLE3.get(label, '')} | {row['miou'].fmt()} | "
+            f"{row['mpa'].mean:.3f} | {row['mp'].mean:.3f} | "
+            + (
+                f"{diff.fmt(True)} | {'yes' if diff.excludes_zero else 'no'}"
+                if diff
+                else "– | –"
+            )  # fmt: skip
+            + f" | {row['easy']:.3f} / {row['hard']:.3f} | {row['language_s']:.0f} | "
+            f"{row['clusters']} |"
+        )
+    return lines
+
+
+def _ceiling_lines(summ: dict) -> list[str]:
+    if "oracle" not in summ:
+        return []
+    o = summ["oracle"]["miou"].mean
+    above = [
+        f"{lab} ({r['miou'].mean:.3f})"
+        for lab, r in summ.items()
+        if lab != "oracle" and r["miou"].mean > o
+    ]
+    return [
+        "",
+        f"Oracle mean {o:.3f} "
+        + (
+            "is at least every variant's mean."
+            if not above
+            else f"is below: {', '.join(above)}."
+        ),
+    ]
+
+
+def _time_lines(results: dict[int, dict]) -> list[str]:
+    walls = {
+        s: sum(e["wall_s"] for e in r["labels"].values()) for s, r in results.items()
+    }
+    tot = sum(walls.values())
+    return [
+        f"Summed job time per seed (one thread): mean {np.mean(list(walls.values())):.0f} s, "
+        f"max {max(walls.values()):.0f} s; {tot / 60:.0f} min over {len(walls)} seeds "
+        "(two seeds run at a time on two cores; the wall time of the whole run is "
+        "printed by the runner and recorded in docs/benchmarks.md)."
+    ]
+
+
+def compare(
+    args: argparse.Namespace, results: dict[int, dict], labels: list[str]
+) -> list[str]:
+    """Does this run rank the variants as the other one does? (Kendall's tau over
+    the variants both have, and the pairs they order differently.)"""
+    other = {}
+    for path in sorted((args.compare / "results").glob("*.json")):
+        res = json.loads(path.read_text())
+        other[res["seed"]] = res
+    a, b = summarise(results, labels), summarise(other, labels)
+    common = [lab for lab in labels if lab in a and lab in b]
+    x = np.array([a[lab]["miou"].mean for lab in common])
+    y = np.array([b[lab]["miou"].mean for lab in common])
+    conc = disc = 0
+    flips = []
+    for i in range(len(common)):
+        for j in range(i + 1, len(common)):
+            s = np.sign(x[i] - x[j]) * np.sign(y[i] - y[j])
+            conc += s > 0
+            disc += s < 0
+            if s < 0 and abs(y[i] - y[j]) > 0.02 and abs(x[i] - x[j]) > 0.02:
+                flips.append(f"{common[i]} vs {common[j]}")
+    tau = (conc - disc) / max(1, conc + disc)
+    lines = [
+        f"Other run: {sorted(other)} seeds of `{next(iter(other.values()))['preset']}`"
+        if other
+        else "Other run: no results",
+        "",
+        "| variant | mIoU here | mIoU there | rank here | rank there |",
+        "|---|---|---|---|---|",
+    ]
+    rx = {
+        lab: r
+        for r, lab in enumerate(sorted(common, key=lambda k: -a[k]["miou"].mean), 1)
+    }
+    ry = {
+        lab: r
+        for r, lab in enumerate(sorted(common, key=lambda k: -b[k]["miou"].mean), 1)
+    }
+    for lab in sorted(common, key=lambda k: rx[k]):
+        lines.append(
+            f"| {lab} | {a[lab]['miou'].mean:.3f} | {b[lab]['miou'].mean:.3f} | "
+            f"{rx[lab]} | {ry[lab]} |"
+        )
+    lines += [
+        "",
+        f"Kendall's tau {tau:+.2f} over {len(common)} variants ({conc} pairs ordered "
+        f"alike, {disc} not); pairs ordered differently where both runs differ by "
+        f"more than 0.02: {', '.join(flips) if flips else 'none'}.",
+    ]
+    return lines
+
+
+def _plot(summ: dict, path: Path) -> None:
+    """Language-stage time (log x) against mIoU with 95 % CI bars (OpenCV)."""
+    import cv2
+
+    pts = [
+        (lab, max(r["language_s"], 1.0), r["miou"])
+        for lab, r in summ.items()
+        if lab not in FEATURE_LABELS
+    ]
+    if not pts:
+        return
+    W, H, m = 960, 600, 80
+    img = np.full((H, W, 3), 255, np.uint8)
+    ts = np.log10([p[1] for p in pts])
+    lo = min(p[2].lo for p in pts)
+    hi = max(p[2].hi for p in pts)
+    x0, x1 = ts.min() - 0.15, ts.max() + 0.15
+    y0, y1 = max(0.0, lo - 0.03), min(1.0, hi + 0.03)
+
+    def px(t: float, y: float) -> tuple[int, int]:
+        return (
+            int(m + (t - x0) / (x1 - x0) * (W - 2 * m)),
+            int(H - m - (y - y0) / (y1 - y0) * (H - 2 * m)),
+        )
+
+    font, black = cv2.FONT_HERSHEY_SIMPLEX, (0, 0, 0)
+    cv2.rectangle(img, (m, m), (W - m, H - m), black, 1)
+    for k in range(6):
+        y = y0 + (y1 - y0) * k / 5
+        cv2.putText(img, f"{y:.2f}", (10, px(x0, y)[1] + 4), font, 0.45, black, 1,
+                    cv2.LINE_AA)  # fmt: skip
+        t = x0 + (x1 - x0) * k / 5
+        cv2.putText(img, f"{10**t:.0f}s", (px(t, y0)[0] - 15, H - m + 20), font, 0.45,
+                    black, 1, cv2.LINE_AA)  # fmt: skip
+    cv2.putText(img, "language stages per scene: train-ae + train-male + query + "
+                "evaluate (s, log)", (m + 40, H - 25), font, 0.5, black, 1,
+                cv2.LINE_AA)  # fmt: skip
+    cv2.putText(img, "mIoU, test seeds (cluster means), 95% cluster-bootstrap CI",
+                (m, m - 25), font, 0.5, black, 1, cv2.LINE_AA)  # fmt: skip
+    order = sorted(range(len(pts)), key=lambda i: pts[i][0] == "male")
+    for i in order:
+        lab, _, est = pts[i]
+        colour = (0, 0, 200) if lab == "male" else (
+            (0, 140, 0) if lab in CEILINGS else (200, 80, 0))  # fmt: skip
+        p, a, b = px(ts[i], est.mean), px(ts[i], est.lo), px(ts[i], est.hi)
+        cv2.line(img, a, b, colour, 1, cv2.LINE_AA)
+        cv2.line(img, (a[0] - 4, a[1]), (a[0] + 4, a[1]), colour, 1)
+        cv2.line(img, (b[0] - 4, b[1]), (b[0] + 4, b[1]), colour, 1)
+        cv2.circle(img, p, 4, colour, -1, cv2.LINE_AA)
+        cv2.putText(img, lab, (p[0] + 7, p[1] - 4), font, 0.4, colour, 1, cv2.LINE_AA)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), img)
+
+
+# ---------------------------------------------------------------------- main --
+
+
+def _seeds(items: list[str]) -> list[int]:
+    out: list[int] = []
+    for it in items:
+        a, _, b = it.partition("-")
+        out += list(range(int(a), int(b) + 1)) if b else [int(a)]
+    return list(dict.fromkeys(out))
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--preset", default="small")
+    ap.add_argument("--seeds", nargs="+", default=["0-17"],
+                    help="seeds or ranges (0-17)")  # fmt: skip
+    ap.add_argument("--dev", nargs="+", default=None,
+                    help="dev seeds (default: the first half of --seeds)")  # fmt: skip
+    ap.add_argument("--labels", nargs="+", default=list(LABELS), choices=LABELS)
+    ap.add_argument("--config", type=Path, default=ROOT / "configs" / "accuracy.toml")
+    ap.add_argument("--data", type=Path, default=ROOT / "data" / "accuracy")
+    ap.add_argument("--work", type=Path, default=ROOT / "work" / "accuracy")
+    ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--threads", type=int, default=1, help=argparse.SUPPRESS)
+    ap.add_argument("--one-seed", type=int, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--report-only", action="store_true")
+    ap.add_argument("--compare", type=Path, default=None,
+                    help="another run's --work: compare the variants' ranking")  # fmt: skip
+    ap.add_argument("--plot", type=Path, default=None,
+                    help="write the speed-against-error plot here")  # fmt: skip
+    args = ap.parse_args(argv)
+    args.seeds = _seeds(args.seeds)
+    args.dev = _seeds(args.dev) if args.dev else args.seeds[: len(args.seeds) // 2]
+    args.work.mkdir(parents=True, exist_ok=True)
+    if args.one_seed is not None:
+        run_seed(args, args.one_seed)
+        return
+    if not args.report_only:
+        run_all(args)
+    print(report(args))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,99 @@
+"""bench/accuracy.py (issue 20): a killed run resumes without redoing finished
+seeds; the report's cluster statistics on hand-made results."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "bench" / "accuracy.py"
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("bench_accuracy", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_killed_run_resumes_without_redoing_finished_seeds(tmp_path: Path) -> None:
+    data, work = tmp_path / "data", tmp_path / "work"
+    cmd = [sys.executable, str(SCRIPT), "--preset", "tiny", "--seeds", "0-1",
+           "--labels", "2d", "--jobs", "1", "--config", str(ROOT / "configs/ci.toml"),
+           "--data", str(data), "--work", str(work)]  # fmt: skip
+    first = work / "results" / "tiny_s0.json"
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            start_new_session=True, text=True)  # fmt: skip
+    try:
+        t0 = time.time()
+        while not first.is_file():
+            assert proc.poll() is None, proc.communicate()[0]
+            assert time.time() - t0 < 300, "seed 0 never finished"
+            time.sleep(0.05)
+    finally:  # kill the runner and its seed job, as a Ctrl-C or a lost shell would
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    assert not (work / "results" / "tiny_s1.json").is_file()
+    before = first.stat().st_mtime_ns, first.read_bytes()
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "seed 0: done earlier, skipped" in res.stdout
+    assert "seed 1: done" in res.stdout and "seed 0: started" not in res.stdout
+    assert (first.stat().st_mtime_ns, first.read_bytes()) == before
+    s1 = json.loads((work / "results" / "tiny_s1.json").read_text())
+    pairs = s1["labels"]["2d"]["pairs"]
+    assert pairs and all(0.0 <= p["iou"] <= 1.0 for p in pairs)
+    assert s1["screen"]["margin"] > 0 and set(s1["hard"]) >= {p["view"] for p in pairs}
+    report = (work / "accuracy.md").read_text()
+    assert "### dev seeds [0]" in report and "### test seeds [1]" in report
+    # a third run has nothing to do
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert res.stdout.count("done earlier, skipped") == 2
+
+
+def _fake(seed: int, scores: dict[str, dict[str, list[float]]]) -> dict:
+    """A seed's results: {label: {query: [IoU per view]}}."""
+    labels = {}
+    for label, per_q in scores.items():
+        pairs = [
+            {"view": f"v{k}.jpg", "query": q, "iou": x, "pa": 0.9, "p": x}
+            for q, xs in per_q.items()
+            for k, x in enumerate(xs)
+        ]
+        labels[label] = {"pairs": pairs, "stage_s": {"train-male": 10.0}, "wall_s": 1}
+    return {"seed": seed, "labels": labels, "hard": {"v1.jpg": True},
+            "screen": {"parts": {}}}  # fmt: skip
+
+
+def test_report_statistics_on_known_results() -> None:
+    acc = _bench()
+    results = {
+        0: _fake(0, {"male": {"A": [0.5, 0.7], "B": [0.0, 0.0]},
+                     "oracle": {"A": [0.9, 0.9], "B": [0.05, 0.0]},
+                     "langsplat": {"A": [0.4, 0.4], "B": [0.0, 0.0]}}),
+        1: _fake(1, {"male": {"A": [0.3, 0.5]},
+                     "oracle": {"A": [0.6, 0.6]},
+                     "langsplat": {"A": [0.2, 0.2]}}),
+    }  # fmt: skip
+    summ = acc.summarise(results, ["male", "oracle", "langsplat"])
+    # clusters (0, A) 0.6, (0, B) 0.0, (1, A) 0.4: mIoU is their mean
+    assert summ["male"]["miou"].mean == pytest.approx((0.6 + 0.0 + 0.4) / 3)
+    assert summ["male"]["clusters"] == 3
+    # paired differences langsplat − male per cluster: −0.2, 0, −0.2
+    assert summ["langsplat"]["diff"].mean == pytest.approx(-0.4 / 3)
+    assert summ["langsplat"]["diff"].hi <= 0.0
+    # easy / hard: view v1 is hard
+    assert summ["male"]["hard"] == pytest.approx((0.7 + 0.0 + 0.5) / 3)
+    assert summ["male"]["easy"] == pytest.approx((0.5 + 0.0 + 0.3) / 3)
+    bad, total, which = acc.unanswered(results, ["male", "oracle", "langsplat"])
+    assert (bad, total, which) == (1, 3, [(0, "B")])
+    assert "is at least every variant's mean" in "\n".join(acc._ceiling_lines(summ))
