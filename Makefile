@@ -58,6 +58,7 @@ bench: setup
 	$(BIN)/python bench/raster.py
 	$(BIN)/python bench/synth_timing.py
 	$(BIN)/python bench/encoder_calibration.py --seeds 0 1 2 --out $(WORK)/synthetic
+	$(BIN)/python bench/screen.py --seeds 50
 	$(BIN)/python bench/reconstruct.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
 	$(BIN)/python bench/extract.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
 	$(BIN)/python bench/train.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench

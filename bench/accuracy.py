@@ -18,7 +18,9 @@ at a time on two cores, one thread each), the instrument measures, on every
   oracle              the full method's language recipe on clean features: every
                       photo re-rendered at its camera under neutral light without
                       occluders (4:4:4 JPEG, same size), its features imported in
-                      every appearance slot
+                      every appearance slot (with U_T = U_A = 0 the full recipe
+                      then equals LangSplat's: both gave identical pairs on all
+                      18 seeds)
   2d                  2-D ceiling: the pipeline's relevancy on the raw 512-d segment
                       features of the evaluation photo itself (no field, no AE)
   2d-ae               the same features through the full method's autoencoder
@@ -85,18 +87,6 @@ CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
 }
 FEATURE_LABELS = ("2d", "2d-ae")
 LABELS = ("male", *FEATURE_LABELS, *(k for k in CHAIN_LABELS if k != "male"))
-TABLE3 = {  # label -> Table 3 row of the paper
-    "no-multi-appearance": 1,
-    "no-tum-aum": 6,
-    "no-tum": 7,
-    "no-aum": 8,
-    "no-bg-filter": 9,
-    "imglvlmax": 10,
-    "pixmax": 11,
-    "pixavg": 12,
-    "pixweighted": 13,
-    "male": 14,
-}
 CHAIN_LOSS = (  # the chain from the photo's features to the fused field
     "2d",
     "2d-ae",
@@ -170,11 +160,12 @@ def oracle_features(ctx, ref, scene: Path, work: Path) -> Path:
     from ptovs.stage import Chain, RunContext, resolve_scene
     from ptovs.synthetic.generate import clean_scene
 
-    folder = work / "oracle" / scene.name / "features"
+    root = work / "oracle" / f"{scene.name}-{ref.key()[:12]}"  # this scene's content
+    folder = root / "features"
     if (folder / "done").is_file():
         return folder
-    clean = clean_scene(scene, work / "oracle" / "data" / scene.name)
-    octx = RunContext(work / "oracle" / "work", ctx.config)
+    clean = clean_scene(scene, root / "data" / scene.name)
+    octx = RunContext(root / "work", ctx.config)
     oref = resolve_scene(octx, None, clean)
     art, _ = _build(Chain(octx, oref, {"extract-features": ["images=orig"]}),
                     "extract-features")  # fmt: skip
@@ -491,11 +482,11 @@ def report(args: argparse.Namespace) -> str:
         raise SystemExit(f"no results under {args.work / 'results'}; run first")
     dev = [s for s in args.dev if s in results]
     test = [s for s in args.seeds if s not in args.dev and s in results]
-    labels = [lab for lab in args.labels if lab in LABELS]
+    labels = list(args.labels)
     md = [
         f"Preset `{args.preset}`, seeds {sorted(results)} (dev {dev}, test {test}); "
-        f"config `{args.config}`; {platform.node() or 'this machine'}, "
-        f"{time.strftime('%Y-%m-%d')}.",
+        f"config `{_rel(args.config)}`; {os.cpu_count()} cores "
+        f"({platform.machine()}), {time.strftime('%Y-%m-%d')}.",
         "",
     ]
     md += _screen_lines(results)
@@ -516,6 +507,7 @@ def report(args: argparse.Namespace) -> str:
             + (f": {', '.join(f'{s}/{q}' for s, q in which)}" if which else "."),
         ]
         md += _ceiling_lines(summ)
+        md += _resolution_lines(sub)
     md += ["", "### Where mIoU is lost (all seeds)", ""]
     md += chain_loss(results)
     md += ["", "### Time", ""]
@@ -529,6 +521,39 @@ def report(args: argparse.Namespace) -> str:
     if "test" in summaries and args.plot:
         _plot(summaries["test"], args.plot)
     return out
+
+
+def _rel(path: Path | None) -> str:
+    if path is None:
+        return "none"
+    try:
+        return str(Path(path).resolve().relative_to(ROOT))
+    except ValueError:
+        return str(path)
+
+
+def _resolution_lines(results: dict[int, dict], other: str = "langsplat") -> list[str]:
+    """How wide the male − baseline interval is, and how many clusters ±0.03 needs."""
+    from ptovs.stats import cluster_means, paired_difference
+
+    a = cluster_means(_records(results, "male"))
+    b = cluster_means(_records(results, other))
+    common = [c for c in a if c in b]
+    if len(common) < 2:
+        return []
+    d = np.array([a[c] - b[c] for c in common])
+    sd = float(d.std(ddof=1))
+    est = paired_difference(a, b)
+    need = int(np.ceil((1.96 * sd / 0.03) ** 2))
+    per_seed = len(common) / len(results)
+    return [
+        "",
+        f"Resolution: male − {other} = {est.fmt(True)}, half-width "
+        f"**{est.half_width:.3f}** over {len(common)} clusters (SD of the per-cluster "
+        f"difference {sd:.3f}); a half-width of 0.03 needs about {need} clusters, "
+        f"i.e. {need / per_seed:.0f} seeds in this half at {per_seed:.1f} queries "
+        "per seed.",
+    ]
 
 
 def _jsonable(x):
@@ -561,6 +586,8 @@ def _screen_lines(results: dict[int, dict]) -> list[str]:
 
 
 def _main_table(summ: dict) -> list[str]:
+    from ptovs.variants import TABLE3_ROWS
+
     lines = [
         "| variant | Table 3 row | mIoU [95 % CI] | mPA | mP | Δ mIoU vs male "
         "[95 % CI] | CI excludes 0 | easy / hard views | language stages (s) | "
@@ -570,7 +597,7 @@ def _main_table(summ: dict) -> list[str]:
     for label, row in summ.items():
         diff = row.get("diff")
         lines.append(
-            f"| {label} | {TABLE3.get(label, '')} | {row['miou'].fmt()} | "
+            f"| {label} | {TABLE3_ROWS.get(label, '')} | {row['miou'].fmt()} | "
             f"{row['mpa'].mean:.3f} | {row['mp'].mean:.3f} | "
             + (
                 f"{diff.fmt(True)} | {'yes' if diff.excludes_zero else 'no'}"
@@ -670,23 +697,25 @@ def compare(
 
 
 def _plot(summ: dict, path: Path) -> None:
-    """Language-stage time (log x) against mIoU with 95 % CI bars (OpenCV)."""
+    """Language-stage time (log x) against the paired mIoU difference to the full
+    method, with its 95 % cluster-bootstrap interval (OpenCV)."""
     import cv2
 
     pts = [
-        (lab, max(r["language_s"], 1.0), r["miou"])
+        (lab, max(r["language_s"], 1.0), r["diff"])
         for lab, r in summ.items()
-        if lab not in FEATURE_LABELS
+        if lab not in FEATURE_LABELS and "diff" in r
     ]
-    if not pts:
+    if not pts or "male" not in summ:
         return
-    W, H, m = 960, 600, 80
+    male = summ["male"]
+    W, H, m = 1000, 640, 90
     img = np.full((H, W, 3), 255, np.uint8)
-    ts = np.log10([p[1] for p in pts])
-    lo = min(p[2].lo for p in pts)
-    hi = max(p[2].hi for p in pts)
-    x0, x1 = ts.min() - 0.15, ts.max() + 0.15
-    y0, y1 = max(0.0, lo - 0.03), min(1.0, hi + 0.03)
+    ts = np.log10([p[1] for p in pts] + [max(male["language_s"], 1.0)])
+    lo = min(0.0, *(p[2].lo for p in pts))
+    hi = max(0.0, *(p[2].hi for p in pts))
+    x0, x1 = ts.min() - 0.1, ts.max() + 0.25
+    y0, y1 = lo - 0.01, hi + 0.01
 
     def px(t: float, y: float) -> tuple[int, int]:
         return (
@@ -694,31 +723,38 @@ def _plot(summ: dict, path: Path) -> None:
             int(H - m - (y - y0) / (y1 - y0) * (H - 2 * m)),
         )
 
-    font, black = cv2.FONT_HERSHEY_SIMPLEX, (0, 0, 0)
+    font, black, grey = cv2.FONT_HERSHEY_SIMPLEX, (0, 0, 0), (170, 170, 170)
     cv2.rectangle(img, (m, m), (W - m, H - m), black, 1)
+    cv2.line(img, px(x0, 0.0), px(x1, 0.0), grey, 1)
     for k in range(6):
         y = y0 + (y1 - y0) * k / 5
-        cv2.putText(img, f"{y:.2f}", (10, px(x0, y)[1] + 4), font, 0.45, black, 1,
+        cv2.putText(img, f"{y:+.3f}", (12, px(x0, y)[1] + 4), font, 0.45, black, 1,
                     cv2.LINE_AA)  # fmt: skip
         t = x0 + (x1 - x0) * k / 5
-        cv2.putText(img, f"{10**t:.0f}s", (px(t, y0)[0] - 15, H - m + 20), font, 0.45,
+        cv2.putText(img, f"{10**t:.0f}s", (px(t, y0)[0] - 15, H - m + 22), font, 0.45,
                     black, 1, cv2.LINE_AA)  # fmt: skip
     cv2.putText(img, "language stages per scene: train-ae + train-male + query + "
-                "evaluate (s, log)", (m + 40, H - 25), font, 0.5, black, 1,
+                "evaluate (s, log; one thread)", (m + 20, H - 30), font, 0.5, black, 1,
                 cv2.LINE_AA)  # fmt: skip
-    cv2.putText(img, "mIoU, test seeds (cluster means), 95% cluster-bootstrap CI",
-                (m, m - 25), font, 0.5, black, 1, cv2.LINE_AA)  # fmt: skip
-    order = sorted(range(len(pts)), key=lambda i: pts[i][0] == "male")
-    for i in order:
+    cv2.putText(img, f"mIoU - full method's ({male['miou'].mean:.3f}), test seeds: "
+                "paired over (seed, query) clusters, 95% cluster-bootstrap CI",
+                (m - 60, m - 30), font, 0.5, black, 1, cv2.LINE_AA)  # fmt: skip
+    p0 = px(ts[-1], 0.0)
+    cv2.circle(img, p0, 5, (0, 0, 200), -1, cv2.LINE_AA)
+    cv2.putText(img, "male", (p0[0] - 45, p0[1] - 6), font, 0.45, (0, 0, 200), 1,
+                cv2.LINE_AA)  # fmt: skip
+    order = sorted(range(len(pts)), key=lambda i: (pts[i][1], pts[i][2].mean))
+    for rank, i in enumerate(order):
         lab, _, est = pts[i]
-        colour = (0, 0, 200) if lab == "male" else (
-            (0, 140, 0) if lab in CEILINGS else (200, 80, 0))  # fmt: skip
-        p, a, b = px(ts[i], est.mean), px(ts[i], est.lo), px(ts[i], est.hi)
+        colour = (0, 140, 0) if lab in CEILINGS else (200, 80, 0)
+        jitter = (rank % 5 - 2) * 0.006 * (x1 - x0)  # equal times: spread the bars
+        t = ts[i] + jitter
+        p, a, b = px(t, est.mean), px(t, est.lo), px(t, est.hi)
         cv2.line(img, a, b, colour, 1, cv2.LINE_AA)
         cv2.line(img, (a[0] - 4, a[1]), (a[0] + 4, a[1]), colour, 1)
         cv2.line(img, (b[0] - 4, b[1]), (b[0] + 4, b[1]), colour, 1)
         cv2.circle(img, p, 4, colour, -1, cv2.LINE_AA)
-        cv2.putText(img, lab, (p[0] + 7, p[1] - 4), font, 0.4, colour, 1, cv2.LINE_AA)
+        cv2.putText(img, lab, (p[0] + 7, p[1] + 4), font, 0.4, colour, 1, cv2.LINE_AA)
     path.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(path), img)
 
