@@ -3,8 +3,10 @@
     make bench-accuracy                                   # what docs/benchmarks.md reports
     python bench/accuracy.py --preset small --seeds 0-17  # the same, by hand
     python bench/accuracy.py --report-only                # tables and plot from the results
-    python bench/accuracy.py --preset bench --seeds 0-2 --config configs/default.toml \\
-        --data data --work work/accuracy-bench --compare work/accuracy   # the ranking check
+    python bench/accuracy.py --preset bench --seeds 0-2 --dev 0-2 \\
+        --data data/accuracy-bench --work work/accuracy-bench           # the ranking check:
+    python bench/accuracy.py --preset small --seeds 0-2 --dev 0-2 --report-only \\
+        --data data/accuracy --work work/accuracy --compare work/accuracy-bench
 
 Every seed is a new synthetic landmark (`ptovs synth-scene`): every part labelled in
 its evaluation views is a query unless the generator's screen finds its phrase
