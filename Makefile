@@ -19,8 +19,8 @@ SETUP     ?= setup
 PTOVS_BIN ?= $(BIN)/ptovs
 PTOVS  := $(PTOVS_BIN) --work-dir $(WORK) --config $(CONFIG)
 # the demo's text for select and roam (tiny, seed 0: its parts are a brick facade, a Doric
-# column, a tiled roof; with the default config "Doric Column" selects 1,039 Gaussians, 56 %
-# on the columns, where "Tiled Roof" selects ground and floaters)
+# column, a tiled roof; with the default config "Doric Column" selects 10,779 of 23,988
+# Gaussians, 44.9 %, at relevancy score 0.173)
 DEMO_TEXT ?= Doric Column
 
 .PHONY: setup demo test lint format bench bench-accuracy all scenes table status clean-work $(SCENES)
