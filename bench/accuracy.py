@@ -139,8 +139,8 @@ def _build(chain, stage: str) -> tuple[object, dict[str, float]]:
 
 def _chain_pairs(ctx, ref, variant: str, sets: dict) -> tuple[list[dict], dict]:
     """The variant's chain through evaluate, then its pairs."""
+    from ptovs.metrics import read_metrics
     from ptovs.stage import Chain
-    from ptovs.stages.evaluate import read_metrics
     from ptovs.variants import variant_sets
 
     art, secs = _build(Chain(ctx, ref, variant_sets(variant, sets)), "evaluate")
@@ -194,10 +194,10 @@ def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
     from ptovs.encoders.synthetic import SyntheticEncoder
     from ptovs.features import SegmentFeatures
     from ptovs.field.relevancy import BACKGROUND_PHRASES, CANONICAL, answer
+    from ptovs.metrics import pair_metrics
+    from ptovs.nets.autoencoder import load_autoencoder
     from ptovs.scene import load_labels
     from ptovs.stage import Chain
-    from ptovs.stages.evaluate import pair_metrics
-    from ptovs.stages.train_ae import load_autoencoder
 
     fe, _ = _build(Chain(ctx, ref, {"extract-features": ["images=orig"]}),
                    "extract-features")  # fmt: skip

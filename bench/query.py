@@ -54,10 +54,11 @@ def _stage_seconds(chain, stage: str) -> dict[str, float]:
 def decode_part(work: Path, scene: Path) -> dict:
     import torch
 
+    from ptovs.field.query import Querier, resolve_queries
+    from ptovs.field.query import QueryConfig as Config
     from ptovs.field.relevancy import answer
+    from ptovs.metrics import pair_metrics
     from ptovs.scene import load_labels
-    from ptovs.stages.evaluate import pair_metrics
-    from ptovs.stages.query import Config, Querier, resolve_queries
 
     chain = _chain(work, scene, "male")
     inputs = chain.inputs("query")
@@ -114,8 +115,9 @@ def decode_part(work: Path, scene: Path) -> dict:
 
 
 def speed_part(work: Path, scene: Path, reps: int = 10) -> dict:
+    from ptovs.field.query import Querier, resolve_queries
+    from ptovs.field.query import QueryConfig as Config
     from ptovs.field.relevancy import finish
-    from ptovs.stages.query import Config, Querier, resolve_queries
 
     chain = _chain(work, scene, "male")
     t0 = time.perf_counter()

@@ -13,8 +13,8 @@ from conftest import RECON, copy_work, run_cli
 from ptovs.artifacts import Artifact
 from ptovs.cli import main
 from ptovs.field import relevancy as rel
-from ptovs.stages.evaluate import markdown_table, pair_metrics, read_metrics, summarise
-from ptovs.stages.query import read_results
+from ptovs.field.query import read_results
+from ptovs.metrics import markdown_table, pair_metrics, read_metrics, summarise
 
 
 @pytest.fixture(scope="module")

@@ -13,10 +13,10 @@ from conftest import RECON, copy_work, run_cli
 from ptovs.artifacts import Artifact, read_json_dataset
 from ptovs.cli import main
 from ptovs.field import language as lang
-from ptovs.nets.autoencoder import LanguageAE
+from ptovs.field.language import load_codes
+from ptovs.nets.autoencoder import LanguageAE, load_autoencoder
 from ptovs.raster import blend_weights, render
 from ptovs.stages import train_ae as tae
-from ptovs.stages.train_male import load_codes
 from test_raster import random_scene
 
 
@@ -52,7 +52,7 @@ def test_ae_codes_decode_close_to_heldout_features(trained):
     with _art(work, "train-ae") as ae_art, _art(work, "extract-features") as feats:
         metrics = read_json_dataset(ae_art.root()["metrics_json"])
         assert metrics["heldout"] > 0 and metrics["heldout_cos"] >= 0.85
-        model = tae.load_autoencoder(ae_art)
+        model = load_autoencoder(ae_art)
         cos = []
         for name in feats.names():
             x = torch.from_numpy(feats[name]["feat_orig"].astype(np.float32))

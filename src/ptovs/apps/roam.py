@@ -144,9 +144,9 @@ def roam_frames(
     from tqdm import tqdm
 
     from ptovs.field.export import appearance_embedding, baked_sh
+    from ptovs.field.query import Querier
     from ptovs.field.render import gaussian_colors, ray_dirs
     from ptovs.raster import render
-    from ptovs.stages.query import Querier
 
     inputs = chain.inputs("query")
     try:

@@ -26,7 +26,7 @@ from ptovs.stage import RunContext, scene_options
 
 def select_gaussians(chain, text: str, min_opacity: float = 0.0):
     """(Selection, Querier) for one text on the chain's trained field."""
-    from ptovs.stages.query import Querier
+    from ptovs.field.query import Querier
 
     inputs = chain.inputs("query")
     querier = Querier(inputs, chain.config("query"), [text])

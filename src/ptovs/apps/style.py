@@ -79,7 +79,7 @@ def recognise(
     """
     from tqdm import tqdm
 
-    from ptovs.stages.query import Querier
+    from ptovs.field.query import Querier
 
     inputs = chain.inputs("query")
     config = chain.config("query")

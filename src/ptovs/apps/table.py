@@ -35,8 +35,8 @@ def collect(
 ) -> tuple[dict, dict]:
     """({variant: {scene: summary or None}}, {scene: failure text})."""
     from ptovs.errors import InputError, MissingInputError
+    from ptovs.metrics import read_metrics
     from ptovs.stage import Chain, resolve_scene
-    from ptovs.stages.evaluate import read_metrics
     from ptovs.variants import variant_sets
 
     rows: dict[str, dict] = {v: {} for v in variants}
@@ -89,7 +89,7 @@ def command(obj: RunContext, data: Path, variants: tuple[str, ...], out: Path | 
     --data; runs nothing (use `make -j3 all DATA=...` or `ptovs evaluate`).
     """
     from ptovs.artifacts import write_atomic
-    from ptovs.stages.evaluate import markdown_table
+    from ptovs.metrics import markdown_table
 
     if not data.is_dir():
         raise click.BadParameter(f"{data} is not a folder", param_hint="--data")

@@ -28,12 +28,14 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 from tqdm import tqdm
 
+from ptovs.artifacts import read_json_dataset
 from ptovs.raster import (
     BlendWeights,
     Camera,
@@ -451,12 +453,25 @@ def evaluate_loss(
     return float(total.sum()), [float(x) for x in total]
 
 
+def load_codes(art: Any) -> tuple[torch.Tensor, dict]:
+    """Codes of every Gaussian [P, L, N, 3] float32 (zeros where unseen), and meta,
+    from a train-male artifact (anything with `.root()`)."""
+    root = art.root()
+    meta = read_json_dataset(root["meta_json"])
+    n = int(meta["gaussians"])
+    seen = np.unpackbits(root["seen_bits"], count=n).astype(bool)
+    codes = np.zeros((n, len(meta["levels"]), len(meta["apps"]), CODE_DIM), np.float32)
+    codes[seen] = root["codes"].astype(np.float32).reshape(-1, *codes.shape[1:])
+    return torch.from_numpy(codes), meta
+
+
 __all__ = [
     "CODE_DIM",
     "MaleConfig",
     "ViewData",
     "ViewStore",
     "evaluate_loss",
+    "load_codes",
     "masked_l1",
     "normalize_chunks",
     "prepare_view",

@@ -14,6 +14,9 @@ code maps [H, W, 3]).
 
 from __future__ import annotations
 
+from typing import Any
+
+import numpy as np
 import torch
 from torch import Tensor, nn
 from torch.nn import functional as F  # noqa: N812
@@ -82,4 +85,15 @@ class LanguageAE(nn.Module):
         return model
 
 
-__all__ = ["DECODER_DIMS", "ENCODER_DIMS", "LanguageAE"]
+def load_autoencoder(art: Any) -> LanguageAE:
+    """The trained autoencoder stored in a train-ae artifact (anything with `.root()`)."""
+    root = art.root()
+    state = {
+        k[4:]: torch.from_numpy(np.asarray(v))
+        for k, v in root.items()
+        if k.startswith("net.")
+    }
+    return LanguageAE.from_state(state)
+
+
+__all__ = ["DECODER_DIMS", "ENCODER_DIMS", "LanguageAE", "load_autoencoder"]

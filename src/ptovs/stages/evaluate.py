@@ -21,30 +21,28 @@ per variant and writes it with the per-pair JSON (see --out).
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-import numpy as np
-
-from ptovs.artifacts import Artifact, json_dataset, read_json_dataset, write_atomic
+from ptovs.artifacts import Artifact, json_dataset
 from ptovs.errors import InputError
+from ptovs.field.query import read_results
+from ptovs.metrics import (
+    CONVENTIONS,
+    markdown_table,
+    pair_metrics,
+    read_metrics,
+    summarise,
+    write_report,
+)
 from ptovs.stage import scene_input, stage_command, upstream
-from ptovs.stages.query import read_results
 
 log = logging.getLogger(__name__)
 
 NAME = "evaluate"
 VERSION = 1
-
-CONVENTIONS = {
-    "empty_prediction": "IoU = 0, P = 0 (PA as usual)",
-    "empty_ground_truth": "pair skipped with a warning",
-    "averaging": "arithmetic mean over all (image, category) pairs of the scene",
-    "level": "the level the query chose (highest smoothed score)",
-}
 
 
 @dataclass(frozen=True)
@@ -56,37 +54,6 @@ class Config:
 class Inputs:
     scene: Any = scene_input()
     query: Artifact = upstream("query")
-
-
-def pair_metrics(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
-    """IoU, PA, P (and recall) of one binary prediction against its ground truth."""
-    p, g = pred.astype(bool), gt.astype(bool)
-    tp = int((p & g).sum())
-    fp = int((p & ~g).sum())
-    fn = int((~p & g).sum())
-    tn = int(p.size - tp - fp - fn)
-    union = tp + fp + fn
-    return {
-        "iou": tp / union if union else 0.0,
-        "pa": (tp + tn) / p.size if p.size else 0.0,
-        "p": tp / (tp + fp) if tp + fp else 0.0,
-        "recall": tp / (tp + fn) if tp + fn else 0.0,
-    }
-
-
-def summarise(pairs: list[dict]) -> dict[str, Any]:
-    """Scene means over pairs, plus per-query means."""
-    if not pairs:
-        return {"pairs": 0, "miou": None, "mpa": None, "mp": None}
-    out: dict[str, Any] = {"pairs": len(pairs)}
-    for key, name in (("iou", "miou"), ("pa", "mpa"), ("p", "mp"), ("recall", "mr")):
-        out[name] = float(np.mean([r[key] for r in pairs]))
-    per_query: dict[str, list[float]] = {}
-    for r in pairs:
-        per_query.setdefault(r["query"], []).append(r["iou"])
-    out["per_query_miou"] = {q: float(np.mean(v)) for q, v in per_query.items()}
-    out["empty_predictions"] = sum(1 for r in pairs if r["pred_pixels"] == 0)
-    return out
 
 
 def run(inputs: Inputs, config: Config) -> dict:
@@ -139,63 +106,6 @@ def run(inputs: Inputs, config: Config) -> dict:
         "pairs_json": json_dataset(pairs),
         "metrics_json": json_dataset(summary),
     }
-
-
-def read_metrics(art: Artifact) -> tuple[dict, list[dict]]:
-    root = art.root()
-    return read_json_dataset(root["metrics_json"]), read_json_dataset(
-        root["pairs_json"]
-    )
-
-
-def markdown_table(
-    rows: dict[str, dict[str, dict | None]], scenes: list[str] | None = None
-) -> str:
-    """Rows {variant: {scene: summary or None}} → Markdown, with a mean column.
-
-    A scene whose summary is None (failed) shows as "failed", a scene of
-    `scenes` absent from a row as "–" (not run); the mean is over the scenes
-    that have numbers, marked with * when some are missing.
-    """
-    if scenes is None:
-        scenes = list(dict.fromkeys(s for r in rows.values() for s in r))
-    head = "| variant | " + " | ".join(scenes) + " | mean |"
-    lines = [
-        "mIoU / mPA / mP per scene (pairs: (image, category); empty prediction: "
-        "IoU = P = 0)",
-        "",
-        head,
-        "|" + "---|" * (len(scenes) + 2),
-    ]
-    for variant, per_scene in rows.items():
-        cells, got = [], []
-        for s in scenes:
-            m = per_scene.get(s)
-            if m is None or m.get("miou") is None:
-                cells.append("failed" if s in per_scene else "–")
-                continue
-            got.append(m)
-            cells.append(f"{m['miou']:.3f} / {m['mpa']:.3f} / {m['mp']:.3f}")
-        if got:
-            mean = "/".join(
-                f"{np.mean([m[k] for m in got]):.3f}" for k in ("miou", "mpa", "mp")
-            ).replace("/", " / ")
-            if len(got) < len(scenes):
-                mean += " *"
-        else:
-            mean = "–"
-        lines.append(f"| {variant} | " + " | ".join(cells) + f" | {mean} |")
-    return "\n".join(lines) + "\n"
-
-
-def write_report(
-    out: Path, rows: dict[str, dict[str, dict | None]], extra: dict
-) -> None:
-    """evaluate.md and evaluate.json under `out`, atomically."""
-    write_atomic(out / "evaluate.md", markdown_table(rows))
-    write_atomic(
-        out / "evaluate.json", json.dumps({"results": rows, **extra}, indent=1)
-    )
 
 
 stage_cmd = stage_command(NAME, VERSION, Config, Inputs, run, kind="single")
@@ -269,14 +179,4 @@ def _command():
 
 command = _command()
 
-__all__ = [
-    "CONVENTIONS",
-    "Config",
-    "Inputs",
-    "markdown_table",
-    "pair_metrics",
-    "read_metrics",
-    "run",
-    "summarise",
-    "write_report",
-]
+__all__ = ["Config", "Inputs", "command", "run"]

@@ -31,84 +31,27 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
-import torch
 
-from ptovs.artifacts import Artifact, json_dataset, read_json_dataset, write_atomic
-from ptovs.encoders import Encoder, get_encoder
-from ptovs.errors import InputError
-from ptovs.field.language import CODE_DIM
-from ptovs.field.relevancy import (
-    BACKGROUND_PHRASES,
-    CANONICAL,
-    PhraseDecoder,
-    QuerySettings,
-    Selection,
-    finish,
-    score_maps,
-    select,
+from ptovs.artifacts import Artifact, json_dataset, write_atomic
+from ptovs.field.query import (
+    Querier,
+    QueryConfig,
+    encoder_name,
+    read_results,
+    resolve_queries,
+    resolve_views,
 )
-from ptovs.field.render import WildField
-from ptovs.raster import Camera, render
 from ptovs.stage import scene_input, stage_command, upstream
-from ptovs.stages.train_ae import load_autoencoder
-from ptovs.stages.train_male import load_codes
 
 log = logging.getLogger(__name__)
 
 NAME = "query"
 VERSION = 2  # 2: per-query relevancy tables
 
-
-@dataclass(frozen=True)
-class Config:
-    queries: tuple[str, ...] = ()
-    """Query texts (empty: every category of the scene's labels)."""
-    views: tuple[str, ...] = ()
-    """Views by name or stem (empty: the labelled views, else every train view)."""
-    appearances: tuple[str, ...] = ()
-    """Slots used, e.g. ("orig",) (empty: every slot train-male trained)."""
-    canonical: tuple[str, ...] = CANONICAL
-    temperature: float = 10.0
-    background_filter: Literal["paper", "code", "off"] = "paper"
-    fusion: Literal["weighted", "imglvlmax", "pixmax", "pixavg", "pixweighted"] = (
-        "weighted"
-    )
-    smooth_kernel: int = 20
-    threshold: float = 0.4
-    threshold_mode: Literal["relative", "absolute"] = "relative"
-    majority: int = 7
-    """Majority-filter window (0 or 1: off)."""
-    majority_exact: bool = False
-    """Replicate the authors' window, which never counts the last row and column."""
-    min_alpha: float = 0.5
-    """Pixels where the field's accumulated opacity is below this score 0: no
-    surface there, so the rendered code (a near-zero blend) means nothing. The
-    authors' scenes carry sky Gaussians; a field without them answers every query
-    in the sky with the decoder's response to the zero code. 0 = off."""
-    decode: Literal["table", "exact"] = "table"
-    table_size: int = 64
-    encoder: Literal["auto", "synthetic", "openclip"] = "auto"
-    """Text encoder: "auto" = the stand-in on synthetic scenes, OpenCLIP elsewhere
-    (it must be the one extract-features used)."""
-    clip_model: str = "ViT-B-16"
-    clip_checkpoint: str = ""
-    device: str = "cpu"
-    backend: str = "auto"
-
-    def settings(self) -> QuerySettings:
-        return QuerySettings(
-            temperature=self.temperature,
-            background_filter=self.background_filter,
-            fusion=self.fusion,
-            smooth_kernel=self.smooth_kernel,
-            threshold=self.threshold,
-            threshold_mode=self.threshold_mode,
-            majority=self.majority,
-            majority_exact=self.majority_exact,
-        )
+Config = QueryConfig  # the [query] section (ptovs.field.query, which Querier reads)
 
 
 @dataclass(frozen=True)
@@ -117,202 +60,6 @@ class Inputs:
     reconstruct: Artifact = upstream("reconstruct")
     ae: Artifact = upstream("train-ae")
     male: Artifact = upstream("train-male")
-
-
-def encoder_name(config: Config, scene: Any) -> str:
-    """ "synthetic" or "openclip": the text encoder `config.encoder` means here."""
-    if config.encoder == "auto":
-        return "synthetic" if scene.synthetic else "openclip"
-    return config.encoder
-
-
-def text_encoder(config: Config, scene: Any) -> Encoder:
-    if encoder_name(config, scene) == "synthetic":
-        from ptovs.encoders.synthetic import SyntheticEncoder
-
-        return SyntheticEncoder.from_scene(scene.root)
-    return get_encoder(
-        "openclip",
-        model=config.clip_model,
-        checkpoint=config.clip_checkpoint,
-        device=config.device,
-    )
-
-
-def resolve_queries(config: Config, scene: Any) -> list[str]:
-    if config.queries:
-        queries = [q.strip() for q in config.queries]
-    else:
-        from ptovs.scene import label_categories
-
-        if scene.labels_dir is None or not scene.labelled_views():
-            raise InputError(
-                f"query: no texts given and scene {scene.name} has no labels; "
-                'pass texts: ptovs query --data ... "Dome" "Column"'
-            )
-        queries = label_categories(scene)
-    if any(not q for q in queries):
-        raise InputError("query: empty query text")
-    return list(dict.fromkeys(queries))
-
-
-def resolve_views(config: Config, scene: Any) -> list:
-    if config.views:
-        out = []
-        for name in config.views:
-            try:
-                out.append(scene.view(name))
-            except (KeyError, InputError) as exc:
-                raise InputError(
-                    f"query: no view {name!r} in {scene.root}; give an image name "
-                    "or stem from dense/images"
-                ) from exc
-        return out
-    return scene.labelled_views() or scene.train_views()
-
-
-def check_vocabulary(encoder: Encoder, phrases: list[str]) -> None:
-    """The stand-in encoder embeds unknown phrases as noise: refuse them clearly."""
-    knows = getattr(encoder, "knows", None)
-    if knows is None:
-        return
-    unknown = [p for p in phrases if not knows(p)]
-    if unknown:
-        vocab = ", ".join(repr(p) for p in encoder.phrases)  # type: ignore[attr-defined]
-        raise InputError(
-            f"query: {unknown} not in the synthetic scene's vocabulary "
-            f"(synthetic/vocabulary.json: {vocab}, plus the generic phrases); the "
-            "stand-in encoder knows only those. Real scenes use OpenCLIP, which "
-            "takes any text."
-        )
-
-
-class Querier:
-    """Renders a view's code maps and answers queries on them (shared by select)."""
-
-    def __init__(self, inputs: Inputs, config: Config, queries: list[str]):
-        self.config = config
-        self.queries = queries
-        codes, meta = load_codes(inputs.male)  # [P, L, A, 3]
-        apps = list(meta["apps"])
-        if config.appearances:
-            missing = [a for a in config.appearances if a not in apps]
-            if missing:
-                raise InputError(
-                    f"query: appearances {missing} not trained (have {apps})"
-                )
-            idx = [apps.index(a) for a in config.appearances]
-            codes, apps = codes[:, :, idx], list(config.appearances)
-        self.levels, self.apps = list(meta["levels"]), apps
-        self.colors = codes.reshape(len(codes), -1).contiguous()
-        self.field = WildField.from_artifact(inputs.reconstruct)
-        self.gaussians = self.field.gaussians
-        if len(self.gaussians) != len(codes):
-            raise InputError(
-                f"query: train-male holds {len(codes)} Gaussians, reconstruct "
-                f"{len(self.gaussians)}; rerun train-male"
-            )
-        encoder = text_encoder(config, inputs.scene)
-        phrases = list(
-            dict.fromkeys([*queries, *config.canonical, *BACKGROUND_PHRASES])
-        )
-        check_vocabulary(encoder, phrases)
-        self.phrases = phrases
-        self.index = {p: i for i, p in enumerate(phrases)}
-        emb = torch.from_numpy(np.asarray(encoder.encode_texts(phrases), np.float32))
-        ae = load_autoencoder(inputs.ae)
-        ae.eval()
-        self.decoder = PhraseDecoder(
-            ae.decode, emb, mode=config.decode, size=config.table_size
-        )
-        self.settings = config.settings()
-        bg = list(BACKGROUND_PHRASES)
-        if config.background_filter == "code":
-            bg = ["sky"]
-        self.bg = [self.index[p] for p in bg]
-        self.canonical = [self.index[p] for p in config.canonical]
-        self._tables: dict[tuple, torch.Tensor] = {}
-
-    @torch.no_grad()
-    def code_maps(self, view) -> tuple[torch.Tensor, torch.Tensor]:
-        """[L, A, H, W, 3] rendered codes (not renormalised, PAPER_SPEC.md §8) and
-        the [H, W] accumulated opacity, for a scene view or a `Camera`."""
-        out = render(
-            self.gaussians,
-            view if isinstance(view, Camera) else Camera.from_view(view),
-            self.colors,
-            depth=False,
-            backend=self.config.backend,
-        )
-        h, w = out.image.shape[:2]
-        img = out.image.reshape(h, w, len(self.levels), len(self.apps), CODE_DIM)
-        return img.permute(2, 3, 0, 1, 4), out.alpha[..., 0]
-
-    def query_table(self, query: int, image_queries: tuple[int, ...]) -> torch.Tensor:
-        """[C, G, G, G]: a query's relevancy (and per-map background) on the grid.
-
-        Both are functions of one pixel's code, so the table path looks up C ≤ 2
-        values per pixel instead of K cosines; cached per (query, image queries).
-        """
-        key = (query, image_queries)
-        if key not in self._tables:
-            s, b = score_maps(
-                self.decoder.grid_cosines,
-                query,
-                self.canonical,
-                self.bg,
-                self.settings,
-                list(image_queries),
-            )
-            self._tables[key] = torch.stack([s] if b is None else [s, b]).contiguous()
-        return self._tables[key]
-
-    @torch.no_grad()
-    def select(self, query: str, min_opacity: float = 0.0) -> Selection:
-        """The 3-D query: decode every Gaussian's codes (no rendering) and select.
-
-        Gaussians train-male never saw (zero codes) and those less opaque than
-        `min_opacity` are never selected; see `ptovs.field.relevancy.select`.
-        """
-        q = self.index[query]
-        n = len(self.colors)
-        codes = self.colors.reshape(n, len(self.levels), len(self.apps), CODE_DIM)
-        valid = codes.flatten(1).abs().amax(1) > 0
-        if min_opacity > 0:
-            valid &= self.gaussians.opacities.reshape(-1) >= min_opacity
-        s, b = self.scores(codes.permute(1, 2, 0, 3), q, (q,))  # [L, A, P]
-        return select(s, b, self.settings, valid)
-
-    def scores(
-        self,
-        codes: torch.Tensor,
-        query: int,
-        image_queries: tuple[int, ...],
-        cos: torch.Tensor | None = None,
-    ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """(relevancy, per-code background or None) of codes [..., 3] for a query,
-        through the table or exactly (`cos`: the codes' cosines, if decoded already)."""
-        if self.config.decode == "exact":
-            cos = self.decoder(codes) if cos is None else cos
-            return score_maps(
-                cos, query, self.canonical, self.bg, self.settings, list(image_queries)
-            )
-        vals = self.decoder.lookup(codes, self.query_table(query, image_queries))
-        return vals[..., 0], (vals[..., 1] if vals.shape[-1] > 1 else None)
-
-    def answer_view(self, view, queries: list[str] | None = None):
-        codes, alpha = self.code_maps(view)
-        support = None
-        if self.config.min_alpha > 0:
-            support = (alpha >= self.config.min_alpha).float()
-        queries = queries or self.queries
-        qidx = tuple(self.index[q] for q in queries)
-        # exact decoding: every phrase's cosine once for all the queries
-        cos = self.decoder(codes) if self.config.decode == "exact" else None
-        return [
-            finish(*self.scores(codes, q, qidx, cos), self.settings, support)
-            for q in qidx
-        ]
 
 
 def run(inputs: Inputs, config: Config, skip: frozenset = frozenset()) -> Iterator:
@@ -357,18 +104,6 @@ def run(inputs: Inputs, config: Config, skip: frozenset = frozenset()) -> Iterat
 
 def _count(inputs: Inputs, config: Config) -> int:
     return len(resolve_views(config, inputs.scene))
-
-
-def read_results(
-    art: Artifact, keys: tuple[str, ...] | None = None
-) -> tuple[dict, dict[str, dict[str, np.ndarray]]]:
-    """(meta, {view name: its datasets}) of a query artifact (only `keys` if given)."""
-    meta = read_json_dataset(art.root()["meta_json"])
-    return meta, {
-        name: art[name] if keys is None else art.read(name, keys)
-        for name in meta["views"]
-        if name in art
-    }
 
 
 def text_key(config: Config, scene_ref: Any) -> dict[str, str]:
@@ -535,12 +270,4 @@ def _command():
 
 command = _command()
 
-__all__ = [
-    "Config",
-    "Inputs",
-    "Querier",
-    "read_results",
-    "resolve_queries",
-    "resolve_views",
-    "run",
-]
+__all__ = ["Config", "Inputs", "command", "run", "text_key", "write_outputs"]

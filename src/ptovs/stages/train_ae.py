@@ -416,17 +416,6 @@ def run(
     yield None, root
 
 
-def load_autoencoder(art: Artifact) -> LanguageAE:
-    """The trained autoencoder stored in a train-ae artifact (eval mode)."""
-    root = art.root()
-    state = {
-        k[4:]: torch.from_numpy(np.asarray(v))
-        for k, v in root.items()
-        if k.startswith("net.")
-    }
-    return LanguageAE.from_state(state)
-
-
 def _count(inputs: Inputs, config: Config) -> int:
     return len(inputs.features.names())
 
@@ -438,7 +427,6 @@ __all__ = [
     "Inputs",
     "collect_samples",
     "command",
-    "load_autoencoder",
     "objective",
     "run",
     "sample_weights",

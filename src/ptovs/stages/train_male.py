@@ -251,17 +251,6 @@ def run(inputs: Inputs, config: Config, ckpt: Checkpoint | None = None) -> dict:
     }
 
 
-def load_codes(art: Artifact) -> tuple[torch.Tensor, dict]:
-    """Codes of every Gaussian [P, L, N, 3] float32 (zeros where unseen), and meta."""
-    root = art.root()
-    meta = read_json_dataset(root["meta_json"])
-    n = int(meta["gaussians"])
-    seen = np.unpackbits(root["seen_bits"], count=n).astype(bool)
-    codes = np.zeros((n, len(meta["levels"]), len(meta["apps"]), CODE_DIM), np.float32)
-    codes[seen] = root["codes"].astype(np.float32).reshape(-1, *codes.shape[1:])
-    return torch.from_numpy(codes), meta
-
-
 command = stage_command(NAME, VERSION, Config, Inputs, run, kind="single")
 
-__all__ = ["Config", "Inputs", "command", "load_codes", "resolve_slots", "run"]
+__all__ = ["Config", "Inputs", "command", "resolve_slots", "run"]
