@@ -10,8 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from ptovs.stage import PIPELINE
-from ptovs.stages import STAGE_MODULES
+from ptovs.stage import PIPELINE, STAGE_MODULES
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "ci.toml"
 
@@ -49,3 +48,35 @@ def test_whole_chain_on_tiny(tmp_path, tiny_scene_dir):
         )
         assert res.returncode == 0, res.stderr
         assert ply.stat().st_size > 1000
+
+
+def test_makefile_stages_follow_the_pipeline():
+    """The Makefile's STAGES and the CLI's stage groups are the one PIPELINE."""
+    from ptovs.stage import EXTRACT_STAGES, TRAIN_STAGES
+
+    makefile = Path(__file__).resolve().parents[1] / "Makefile"
+    line = next(x for x in makefile.read_text().splitlines() if x.startswith("STAGES"))
+    assert tuple(line.split(":=", 1)[1].split()) == PIPELINE
+    assert set(STAGE_MODULES) == set(PIPELINE)
+    assert EXTRACT_STAGES == ("render-appearances", "extract-features", "uncertainty")
+    assert TRAIN_STAGES == ("train-ae", "train-male")
+
+
+def test_set_grammar_is_one_for_every_command():
+    import click
+    import pytest
+
+    from ptovs.stage import split_sets
+
+    got = split_sets(
+        ["iterations=10", "train-ae.lr=1e-3", "scene.downscale=2", "x.y=a.b=c"],
+        (*PIPELINE, "scene", "x"),
+        default="train-male",
+    )
+    assert got["train-male"] == ["iterations=10"]
+    assert got["train-ae"] == ["lr=1e-3"]
+    assert got["scene"] == ["downscale=2"]
+    assert got["x"] == ["y=a.b=c"]
+    for bad in (["nope.x=1"], ["iterations=1"], ["train-ae.lr"]):
+        with pytest.raises(click.UsageError, match="STAGE.KEY=VALUE"):
+            split_sets(bad, PIPELINE)  # no default section: KEY=VALUE is refused

@@ -13,8 +13,17 @@ import click
 from ptovs import __version__
 from ptovs.config import load_config, merge, parse_sets
 from ptovs.errors import InputError, MissingInputError
-from ptovs.stage import RunContext, resolve_scene, scene_options
-from ptovs.variants import VARIANTS
+from ptovs.stage import (
+    EXTRACT_STAGES,
+    STAGE_MODULES,
+    TRAIN_STAGES,
+    RunContext,
+    chain_options,
+    resolve_scene,
+    run_stages,
+    scene_options,
+    variant_chain,
+)
 
 log = logging.getLogger("ptovs")
 
@@ -24,7 +33,6 @@ class LazyGroup(click.Group):
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         from ptovs.apps import APP_MODULES
-        from ptovs.stages import STAGE_MODULES
 
         return sorted(
             set(super().list_commands(ctx)) | set(STAGE_MODULES) | set(APP_MODULES)
@@ -35,7 +43,6 @@ class LazyGroup(click.Group):
         if cmd is not None:
             return cmd
         from ptovs.apps import APP_MODULES
-        from ptovs.stages import STAGE_MODULES
 
         module = STAGE_MODULES.get(name) or APP_MODULES.get(name)
         if module is not None:
@@ -234,33 +241,8 @@ def export_ply(
     click.echo(f"export-ply: {n} Gaussians -> {out}")
 
 
-EXTRACT_STAGES = ("render-appearances", "extract-features", "uncertainty")
-
-
-def _split_sets(sets: tuple[str, ...], stages: tuple[str, ...]) -> dict[str, list[str]]:
-    """`stage.key=value` items → {stage: ["key=value"]} for the given stages."""
-    out: dict[str, list[str]] = {s: [] for s in stages}
-    for item in sets:
-        head, _, rest = item.partition(".")
-        if head not in out or "=" not in rest:
-            raise click.UsageError(
-                f"--set {item!r}: write STAGE.KEY=VALUE with STAGE one of "
-                f"{', '.join(stages)} (e.g. extract-features.segmenter=graph)"
-            )
-        out[head].append(rest)
-    return out
-
-
 @main.command("extract")
-@scene_options
-@click.option(
-    "--set",
-    "sets",
-    multiple=True,
-    metavar="STAGE.KEY=VALUE",
-    help="Override a config value of one of the three stages (repeatable).",
-)
-@click.option("--force", is_flag=True, help="Recompute all three stages.")
+@chain_options(variant=None, force="Recompute all three stages.")
 @click.pass_obj
 def extract(
     obj: RunContext,
@@ -275,62 +257,12 @@ def extract(
     resumable on its own: a second `ptovs extract` does nothing, and a killed one
     resumes in the stage (and at the view) where it stopped. Needs reconstruct.
     """
-    from ptovs.stage import Chain
-
-    ref = resolve_scene(obj, scene_name, data)
-    chain = Chain(obj, ref, _split_sets(sets, EXTRACT_STAGES))
-    _run_stages(chain, EXTRACT_STAGES, set(EXTRACT_STAGES) if force else set())
-
-
-def _run_stages(chain, stages, force: set[str]) -> None:
-    """Run stages in order (cached ones return at once); one line per stage."""
-    import time
-
-    from ptovs.stage import execute
-
-    for stage in stages:
-        redo = stage in force or chain.ctx.force
-        was = chain.state(stage)[0]
-        t0 = time.perf_counter()
-        art = execute(chain, stage, force=redo)
-        what = "cached" if was == "done" and not redo else "done"
-        click.echo(
-            f"{stage:<20} {what:<7} {time.perf_counter() - t0:7.1f} s  {art.path}"
-        )
-        art.close()
-
-
-TRAIN_STAGES = ("train-ae", "train-male")
-ALL_STAGES = (
-    "reconstruct",
-    "render-appearances",
-    "extract-features",
-    "uncertainty",
-    *TRAIN_STAGES,
-)
+    chain, _ = variant_chain(obj, scene_name, data, "male", sets)
+    run_stages(chain, EXTRACT_STAGES, EXTRACT_STAGES if force else ())
 
 
 @main.command("train")
-@scene_options
-@click.option(
-    "--variant",
-    type=click.Choice(list(VARIANTS)),
-    default="male",
-    show_default=True,
-    help="male: the paper's MALE-GS. langsplat: LangSplat's recipe (one "
-    "appearance, originals only, no uncertainty) on plain-3DGS geometry. "
-    "langsplat-wild: that recipe on the in-the-wild geometry. The others are "
-    "the paper's Table 3 ablations and iteration budgets (ptovs.variants).",
-)
-@click.option(
-    "--set",
-    "sets",
-    multiple=True,
-    metavar="STAGE.KEY=VALUE",
-    help="Override a config value of any stage of the chain (repeatable), e.g. "
-    "train-male.iterations=30000.",
-)
-@click.option("--force", is_flag=True, help="Retrain train-ae and train-male.")
+@chain_options(variant="one", force="Retrain train-ae and train-male.")
 @click.pass_obj
 def train(
     obj: RunContext,
@@ -347,13 +279,8 @@ def train(
     variant needs that has not run yet (reconstruct, extract-features, ...) runs
     first, so `--variant langsplat` builds its plain-3DGS geometry itself.
     """
-    from ptovs.stage import Chain
-    from ptovs.variants import variant_sets
-
-    ref = resolve_scene(obj, scene_name, data)
-    chain = Chain(obj, ref, variant_sets(variant, _split_sets(sets, ALL_STAGES)))
-    stages = chain.closure("train-male")
-    _run_stages(chain, stages, set(TRAIN_STAGES) if force else set())
+    chain, _ = variant_chain(obj, scene_name, data, variant, sets)
+    run_stages(chain, chain.closure("train-male"), TRAIN_STAGES if force else ())
 
 
 @main.command("export-features")

@@ -42,8 +42,9 @@ from ptovs.errors import InputError, MissingInputError
 
 log = logging.getLogger(__name__)
 
-# The chain, in dependency order. A stage exists once its module is registered in
-# ptovs.stages.STAGE_MODULES; `status` lists the ones that exist.
+# The chain, in dependency order: the one list every stage group, the CLI's chain
+# commands and the Makefile's STAGES are derived from (tests/test_chain.py holds the
+# Makefile to it). Stage NAME lives in module ptovs.stages.<name with _ for ->.
 PIPELINE = (
     "reconstruct",
     "render-appearances",
@@ -54,6 +55,18 @@ PIPELINE = (
     "query",
     "evaluate",
 )
+STAGE_MODULES: dict[str, str] = {
+    name: "ptovs.stages." + name.replace("-", "_") for name in PIPELINE
+}
+
+
+def stages_between(first: str, last: str) -> tuple[str, ...]:
+    """The stages of PIPELINE from `first` to `last`, both included."""
+    return PIPELINE[PIPELINE.index(first) : PIPELINE.index(last) + 1]
+
+
+EXTRACT_STAGES = stages_between("render-appearances", "uncertainty")  # ptovs extract
+TRAIN_STAGES = stages_between("train-ae", "train-male")  # ptovs train
 SCENE = "scene"  # pseudo-stage: the input data itself
 SCENE_VERSION = 1
 
@@ -123,8 +136,6 @@ def all_stages() -> list[StageSpec]:
     """Every available stage, pipeline order first (imports the stage modules)."""
     import importlib
 
-    from ptovs.stages import STAGE_MODULES
-
     for module in STAGE_MODULES.values():
         importlib.import_module(module)
     order = {name: i for i, name in enumerate(PIPELINE)}
@@ -136,8 +147,6 @@ def all_stages() -> list[StageSpec]:
 def get_stage(name: str) -> StageSpec:
     if name not in REGISTRY:
         import importlib
-
-        from ptovs.stages import STAGE_MODULES
 
         if name in STAGE_MODULES:
             importlib.import_module(STAGE_MODULES[name])
@@ -472,6 +481,107 @@ def scene_options(f: Callable) -> Callable:
     return f
 
 
+SET_HELP = (
+    "Override a config value (repeatable): STAGE.KEY=VALUE, STAGE any stage of the "
+    "chain or scene; on a stage's own command KEY=VALUE sets that stage's keys."
+)
+
+
+def split_sets(
+    sets: Iterable[str], sections: Iterable[str], default: str | None = None
+) -> dict[str, list[str]]:
+    """`--set` items → {section: ["key=value", ...]}, one grammar for every command.
+
+    An item is `STAGE.KEY=VALUE` (STAGE a stage or `scene`); on a stage's own
+    command `KEY=VALUE` means that stage (`default`). A section outside `sections`
+    is an error naming the choices, never silently ignored.
+    """
+    allowed = list(dict.fromkeys(sections))
+    out: dict[str, list[str]] = {name: [] for name in allowed}
+    for item in sets:
+        key, eq, value = item.partition("=")
+        section, dot, rest = key.partition(".")
+        if not dot:
+            section, rest = default or "", key
+        if not eq or not rest.strip() or section not in out:
+            raise click.UsageError(
+                f"--set {item!r}: write STAGE.KEY=VALUE with STAGE one of "
+                f"{', '.join(allowed)} (e.g. --set extract-features.segmenter=graph)"
+                + (f", or KEY=VALUE for [{default}]" if default else "")
+            )
+        out[section].append(f"{rest.strip()}={value}")
+    return out
+
+
+def chain_options(
+    *,
+    variant: Literal["one", "many"] | None = "one",
+    force: str | None = "Recompute even if cached.",
+):
+    """The options every command over the chain shares: --scene, --data, --set,
+    --variant (one, repeatable, or none: `variant`) and --force (its help text, or
+    none: the applications write no artifact)."""
+
+    def wrap(f: Callable) -> Callable:
+        if force is not None:
+            f = click.option("--force", is_flag=True, help=force)(f)
+        f = click.option(
+            "--set", "sets", multiple=True, metavar="STAGE.KEY=VALUE", help=SET_HELP
+        )(f)
+        if variant is not None:
+            from ptovs.variants import VARIANTS
+
+            many = variant == "many"
+            f = click.option(
+                "--variant",
+                "variants" if many else "variant",
+                multiple=many,
+                type=click.Choice(list(VARIANTS)),
+                default=None if many else "male",
+                show_default=not many,
+                help="Which recipe: male (the paper's MALE-GS); langsplat "
+                "(LangSplat's: one appearance, originals only, no uncertainty, on "
+                "plain-3DGS geometry); langsplat-wild (that recipe on the "
+                "in-the-wild geometry); a Table 3 ablation or an iteration budget "
+                "(ptovs.variants)." + (" Repeatable: side by side." if many else ""),
+            )(f)
+        return scene_options(f)
+
+    return wrap
+
+
+def run_stages(chain: Chain, stages: Iterable[str], force: Iterable[str] = ()) -> None:
+    """Run stages in order (cached ones return at once), one line per stage."""
+    redo_set = set(force)
+    for stage in stages:
+        redo = stage in redo_set or chain.ctx.force
+        was = chain.state(stage)[0]
+        t0 = time.perf_counter()
+        art = execute(chain, stage, force=redo)
+        what = "cached" if was == "done" and not redo else "done"
+        click.echo(
+            f"{stage:<20} {what:<7} {time.perf_counter() - t0:7.1f} s  {art.path}"
+        )
+        art.close()
+
+
+def variant_chain(
+    ctx: RunContext,
+    scene_name: str | None,
+    data: Path | None,
+    variant: str,
+    sets: Iterable[str],
+    default: str | None = None,
+) -> tuple[Chain, SceneRef]:
+    """The chain of a recipe (`ptovs.variants`) for a scene, with the command's
+    `--set` items (SECTION.KEY=VALUE; KEY=VALUE for `default`'s section)."""
+    from ptovs.variants import variant_sets
+
+    split = split_sets(sets, (*PIPELINE, *REGISTRY, SCENE), default)
+    ref = resolve_scene(ctx, scene_name, data, split.pop(SCENE))
+    return Chain(ctx, ref, variant_sets(variant, split)), ref
+
+
 def resolve_scene(
     ctx: RunContext, scene_name: str | None, data: Path | None, sets: Iterable[str] = ()
 ) -> SceneRef:
@@ -498,6 +608,26 @@ def resolve_scene(
     return SceneRef(scene_name, Path(data), config, ctx.work_dir)
 
 
+@dataclass(frozen=True)
+class CommandExtras:
+    """What a stage's command adds to the plain one (`query` and `evaluate`)."""
+
+    options: tuple[Callable, ...] = ()
+    """More click options and arguments, outermost first."""
+    variant: Literal["one", "many"] | None = None
+    """--variant: one recipe, several side by side, or none (the paper's)."""
+    overrides: Callable[[dict[str, Any]], dict[str, Any]] | None = None
+    """The extra options' values → values of the stage's own config section."""
+    upstream: bool = False
+    """Run any missing upstream stage first (else a missing input is an error)."""
+    force_also: tuple[str, ...] = ()
+    """Upstream stages --force recomputes too."""
+    report: Callable[..., None] | None = None
+    """(ctx, scene ref, {variant: artifact}, **extra options) → None, after the run;
+    default: print the artifact's path."""
+    force_help: str = "Recompute even if the artifact exists."
+
+
 def stage_command(
     name: str,
     version: int,
@@ -510,8 +640,9 @@ def stage_command(
     after: Callable[[Artifact], None] | None = None,
     extra_key: Callable[[Any, Any], dict[str, str]] | None = None,
     help: str | None = None,
+    extras: CommandExtras = CommandExtras(),
 ) -> click.Command:
-    """Register a stage and build its click command."""
+    """Register a stage and build its click command (every stage's, one way)."""
     REGISTRY[name] = StageSpec(
         name, version, config_cls, inputs_cls, run, kind, count, after, extra_key
     )
@@ -519,20 +650,8 @@ def stage_command(
         f"  {f.name} = {f.default!r}" for f in dataclasses.fields(config_cls)
     )
     doc = (help or (inspect.getmodule(run).__doc__ or name)).strip()
-    doc += f"\n\n\b\nConfig keys ([{name}] in --config, or --set key=value):\n{fields}"
+    doc += f"\n\n\b\nConfig keys ([{name}] in --config, or --set KEY=VALUE):\n{fields}"
 
-    @click.command(name=name, help=doc)
-    @scene_options
-    @click.option(
-        "--set",
-        "sets",
-        multiple=True,
-        metavar="KEY=VALUE",
-        help=f"Override a [{name}] config value (repeatable).",
-    )
-    @click.option(
-        "--force", is_flag=True, help="Recompute even if the artifact exists."
-    )
     @click.pass_obj
     def command(
         obj: RunContext,
@@ -540,11 +659,35 @@ def stage_command(
         data: Path | None,
         sets: tuple[str, ...],
         force: bool,
+        **extra: Any,
     ) -> None:
-        ref = resolve_scene(obj, scene_name, data)
-        chain = Chain(obj, ref, {name: sets})
-        art = execute(chain, name, force=force or obj.force)
-        click.echo(f"{name}: {art.path}")
-        art.close()
+        variants = extra.pop("variants", None) or (extra.pop("variant", "male"),)
+        ctx = obj
+        if extras.overrides is not None:
+            over = extras.overrides(extra)
+            ctx = RunContext(obj.work_dir, merge(obj.config, {name: over}), obj.force)
+        redo = {name, *extras.force_also} if force else set()
+        arts: dict[str, Artifact] = {}
+        try:
+            for variant in variants:
+                chain, ref = variant_chain(
+                    ctx, scene_name, data, variant, sets, default=name
+                )
+                if extras.upstream:
+                    before = [s for s in chain.closure(name) if s != name]
+                    run_stages(chain, before, redo)
+                arts[variant] = execute(chain, name, force=name in redo or obj.force)
+            if extras.report is None:
+                click.echo(f"{name}: {arts[variants[0]].path}")
+            else:
+                extras.report(ctx, ref, arts, **extra)
+        finally:
+            for art in arts.values():
+                art.close()
 
-    return command
+    for option in (
+        *extras.options,
+        chain_options(variant=extras.variant, force=extras.force_help),
+    )[::-1]:
+        command = option(command)
+    return click.command(name=name, help=doc)(command)

@@ -32,17 +32,13 @@ def trained_chain(
 
     Args:
         obj: the CLI's RunContext.
-        sets: STAGE.KEY=VALUE overrides; `query.*` ones set the decoding and
+        sets: SECTION.KEY=VALUE overrides; `query.*` ones set the decoding and
             relevancy knobs the applications share with `ptovs query`.
     """
-    from ptovs.cli import ALL_STAGES, _run_stages, _split_sets
-    from ptovs.stage import Chain, resolve_scene
-    from ptovs.variants import variant_sets
+    from ptovs.stage import run_stages, variant_chain
 
-    ref = resolve_scene(obj, scene_name, data)
-    split = _split_sets(sets, (*ALL_STAGES, "query"))
-    chain = Chain(obj, ref, variant_sets(variant, split))
-    _run_stages(chain, chain.closure("train-male"), set())
+    chain, ref = variant_chain(obj, scene_name, data, variant, sets)
+    run_stages(chain, chain.closure("train-male"))
     return chain, ref
 
 
@@ -50,25 +46,3 @@ def close_inputs(inputs: Any) -> None:
     """Close the artifacts of a query stage's `Inputs` (the scene needs nothing)."""
     for art in (inputs.reconstruct, inputs.ae, inputs.male):
         art.close()
-
-
-def variant_option(f):
-    import click
-
-    from ptovs.variants import VARIANTS
-
-    f = click.option(
-        "--set",
-        "sets",
-        multiple=True,
-        metavar="STAGE.KEY=VALUE",
-        help="Override a config value of any stage (repeatable), e.g. "
-        "query.background_filter=off.",
-    )(f)
-    return click.option(
-        "--variant",
-        type=click.Choice(list(VARIANTS)),
-        default="male",
-        show_default=True,
-        help="Which trained field to use (see `ptovs train --variant`).",
-    )(f)

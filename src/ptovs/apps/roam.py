@@ -26,10 +26,10 @@ import cv2
 import numpy as np
 import torch
 
-from ptovs.apps import close_inputs, trained_chain, variant_option
+from ptovs.apps import close_inputs, trained_chain
 from ptovs.errors import InputError
 from ptovs.raster import Camera
-from ptovs.stage import RunContext, scene_options
+from ptovs.stage import RunContext, chain_options
 
 EDGE_BGR = (0, 230, 255)
 FILL_BGR = (40, 80, 255)
@@ -221,7 +221,7 @@ def write_video(path: Path, frames, fps: float) -> int:
 
 @click.command(name="roam")
 @click.argument("text")
-@scene_options
+@chain_options(variant="one", force=None)
 @click.option("--out", type=click.Path(path_type=Path), required=True,
               help="Video file (.mp4 or .avi).")  # fmt: skip
 @click.option("--frames", type=click.IntRange(1), default=90, show_default=True)
@@ -235,7 +235,6 @@ def write_video(path: Path, frames, fps: float) -> int:
 @click.option("--highlight", "mode", type=click.Choice(["select", "query"]),
               default="select", show_default=True,
               help="select: the 3-D selection, rendered; query: a 2-D query per frame.")  # fmt: skip
-@variant_option
 @click.pass_obj
 def command(
     obj: RunContext,

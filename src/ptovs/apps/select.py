@@ -19,9 +19,9 @@ from pathlib import Path
 
 import click
 
-from ptovs.apps import close_inputs, trained_chain, variant_option
+from ptovs.apps import close_inputs, trained_chain
 from ptovs.errors import InputError
-from ptovs.stage import RunContext, scene_options
+from ptovs.stage import RunContext, chain_options
 
 
 def select_gaussians(chain, text: str, min_opacity: float = 0.0):
@@ -35,7 +35,7 @@ def select_gaussians(chain, text: str, min_opacity: float = 0.0):
 
 @click.command(name="select")
 @click.argument("text")
-@scene_options
+@chain_options(variant="one", force=None)
 @click.option(
     "--out",
     type=click.Path(path_type=Path),
@@ -60,7 +60,6 @@ def select_gaussians(chain, text: str, min_opacity: float = 0.0):
     default=None,
     help="Bake this image's appearance into the colours (default: neutral).",
 )
-@variant_option
 @click.pass_obj
 def command(
     obj: RunContext,

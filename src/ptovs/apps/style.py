@@ -23,10 +23,10 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ptovs.apps import close_inputs, trained_chain, variant_option
+from ptovs.apps import close_inputs, trained_chain
 from ptovs.errors import InputError
 from ptovs.field.relevancy import threshold
-from ptovs.stage import RunContext, scene_options
+from ptovs.stage import RunContext, chain_options
 
 
 def sample_views(scene, n: int, seed: int, which: str = "random") -> list:
@@ -160,7 +160,7 @@ def default_candidates(scene) -> list[str]:
 
 
 @click.command(name="style")
-@scene_options
+@chain_options(variant="one", force=None)
 @click.option(
     "--candidates",
     default=None,
@@ -183,7 +183,6 @@ def default_candidates(scene) -> list[str]:
 @click.option("--out", type=click.Path(path_type=Path), default=None,
               help="Folder for style.json, style.md and the heatmaps (default: "
               "<work>/<scene>/style-out/<variant>).")  # fmt: skip
-@variant_option
 @click.pass_obj
 def command(
     obj: RunContext,

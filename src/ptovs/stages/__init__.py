@@ -1,19 +1,7 @@
-"""Pipeline stages, one module per subcommand.
+"""Pipeline stages, one module per subcommand, each a leaf.
 
-`STAGE_MODULES` maps each implemented stage's subcommand to its module; the CLI
-imports a module only when its command runs (or for `ptovs status`). A stage is
-added here when it exists, never before.
+Stage NAME lives in `ptovs.stages.<name with _ for ->` and is listed, in order, in
+`ptovs.stage.PIPELINE` (with `STAGE_MODULES`); the CLI imports a module only when
+its command runs (or for `ptovs status`). A stage module imports the framework
+(`ptovs.stage`) and the shared rooms below it, never another stage or the CLI.
 """
-
-from __future__ import annotations
-
-STAGE_MODULES: dict[str, str] = {
-    "reconstruct": "ptovs.stages.reconstruct",
-    "render-appearances": "ptovs.stages.render_appearances",
-    "extract-features": "ptovs.stages.extract_features",
-    "uncertainty": "ptovs.stages.uncertainty",
-    "train-ae": "ptovs.stages.train_ae",
-    "train-male": "ptovs.stages.train_male",
-    "query": "ptovs.stages.query",
-    "evaluate": "ptovs.stages.evaluate",
-}

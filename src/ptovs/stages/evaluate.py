@@ -37,7 +37,7 @@ from ptovs.metrics import (
     summarise,
     write_report,
 )
-from ptovs.stage import scene_input, stage_command, upstream
+from ptovs.stage import CommandExtras, scene_input, stage_command, upstream
 
 log = logging.getLogger(__name__)
 
@@ -108,75 +108,46 @@ def run(inputs: Inputs, config: Config) -> dict:
     }
 
 
-stage_cmd = stage_command(NAME, VERSION, Config, Inputs, run, kind="single")
-
-
-def _command():
+def _report(ctx: Any, ref: Any, arts: dict[str, Artifact], *, out: Path | None) -> None:
+    """evaluate.md and evaluate.json (one row per variant), and the table."""
     import click
 
-    from ptovs.stage import Chain, RunContext, execute, resolve_scene, scene_options
-    from ptovs.variants import VARIANTS
+    rows = {variant: {ref.name: read_metrics(art)[0]} for variant, art in arts.items()}
+    paths = {variant: str(art.path) for variant, art in arts.items()}
+    folder = out or ctx.work_dir / ref.name
+    write_report(folder, rows, {"artifacts": paths, "conventions": CONVENTIONS})
+    click.echo(markdown_table(rows))
+    click.echo(f"evaluate: {folder / 'evaluate.md'}")
 
-    @click.command(name=NAME, help=stage_cmd.help)
-    @scene_options
-    @click.option(
-        "--variant",
-        "variants",
-        multiple=True,
-        type=click.Choice(list(VARIANTS)),
-        help="A recipe to evaluate (repeatable; side by side): male (default), "
-        "langsplat, langsplat-wild, a Table 3 ablation or an iteration budget "
-        "(ptovs.variants).",
+
+def _options() -> tuple:
+    import click
+
+    return (
+        click.option(
+            "--out",
+            type=click.Path(path_type=Path),
+            default=None,
+            help="Folder for evaluate.md and evaluate.json (default: <work>/<scene>).",
+        ),
     )
-    @click.option(
-        "--set",
-        "sets",
-        multiple=True,
-        metavar="STAGE.KEY=VALUE",
-        help="Override a config value of any stage for every variant (repeatable).",
-    )
-    @click.option(
-        "--out",
-        type=click.Path(path_type=Path),
-        default=None,
-        help="Folder for evaluate.md and evaluate.json (default: <work>/<scene>).",
-    )
-    @click.option("--force", is_flag=True, help="Recompute query and evaluate.")
-    @click.pass_obj
-    def command(
-        obj: RunContext,
-        scene_name: str | None,
-        data: Path | None,
-        variants: tuple[str, ...],
-        sets: tuple[str, ...],
-        out: Path | None,
-        force: bool,
-    ) -> None:
-        from ptovs.cli import ALL_STAGES, _run_stages, _split_sets
-        from ptovs.variants import variant_sets
-
-        ref = resolve_scene(obj, scene_name, data)
-        split = _split_sets(sets, (*ALL_STAGES, "query", NAME))
-        rows: dict[str, dict[str, dict | None]] = {}
-        arts = {}
-        for variant in variants or ("male",):
-            chain = Chain(obj, ref, variant_sets(variant, split))
-            stages = chain.closure(NAME)
-            redo = {"query", NAME} if force else set()
-            _run_stages(chain, [s for s in stages if s != NAME], redo)
-            art = execute(chain, NAME, force=force or obj.force)
-            summary, _ = read_metrics(art)
-            rows[variant] = {ref.name: summary}
-            arts[variant] = str(art.path)
-            art.close()
-        folder = out or obj.work_dir / ref.name
-        write_report(folder, rows, {"artifacts": arts, "conventions": CONVENTIONS})
-        click.echo(markdown_table(rows))
-        click.echo(f"evaluate: {folder / 'evaluate.md'}")
-
-    return command
 
 
-command = _command()
+command = stage_command(
+    NAME,
+    VERSION,
+    Config,
+    Inputs,
+    run,
+    kind="single",
+    extras=CommandExtras(
+        options=_options(),
+        variant="many",
+        upstream=True,
+        force_also=("query",),
+        report=_report,
+        force_help="Recompute query and evaluate.",
+    ),
+)
 
 __all__ = ["Config", "Inputs", "command", "run"]

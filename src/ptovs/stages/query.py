@@ -44,7 +44,7 @@ from ptovs.field.query import (
     resolve_queries,
     resolve_views,
 )
-from ptovs.stage import scene_input, stage_command, upstream
+from ptovs.stage import CommandExtras, scene_input, stage_command, upstream
 
 log = logging.getLogger(__name__)
 
@@ -120,11 +120,6 @@ def text_key(config: Config, scene_ref: Any) -> dict[str, str]:
     return {"vocabulary": hashlib.sha256(path.read_bytes()).hexdigest()}
 
 
-stage_cmd = stage_command(
-    NAME, VERSION, Config, Inputs, run, count=_count, extra_key=text_key
-)
-
-
 def write_outputs(
     art: Artifact, scene: Any, out: Path, pictures: bool = True
 ) -> tuple[Path, list[dict]]:
@@ -181,93 +176,80 @@ def write_outputs(
     return path, records
 
 
-def _command():
+def _overrides(extra: dict[str, Any]) -> dict[str, Any]:
+    """The command's texts and --views → the [query] section's queries and views."""
+    over: dict[str, Any] = {}
+    if extra["texts"]:
+        over["queries"] = list(extra["texts"])
+    if extra["view_names"]:
+        over["views"] = list(extra["view_names"])
+    return over
 
+
+def _report(
+    ctx: Any,
+    ref: Any,
+    arts: dict[str, Artifact],
+    *,
+    texts: tuple[str, ...],
+    view_names: tuple[str, ...],
+    out: Path | None,
+    no_pictures: bool,
+) -> None:
+    """PNGs and results.json under --out, and one line per (view, query)."""
     import click
 
-    from ptovs.config import merge
-    from ptovs.stage import Chain, RunContext, execute, resolve_scene, scene_options
-    from ptovs.variants import VARIANTS
+    ((variant, art),) = arts.items()
+    folder = out or ctx.work_dir / ref.name / "query-out" / variant
+    path, records = write_outputs(art, ref.load(), folder, pictures=not no_pictures)
+    for r in records:
+        click.echo(
+            f"{r['view']}  {r['query']!r}: score {r['score']:.3f} "
+            f"level {r['level']}, {r['mask_pixels']} px"
+        )
+    click.echo(f"query: {art.path}")
+    click.echo(f"results: {path}")
 
-    @click.command(name=NAME, help=stage_cmd.help)
-    @click.argument("texts", nargs=-1)
-    @scene_options
-    @click.option(
-        "--views",
-        "view_names",
-        multiple=True,
-        metavar="NAME",
-        help="A view (image name or stem) to query; repeatable (default: the "
-        "labelled views, else every train view).",
+
+def _options() -> tuple:
+    import click
+
+    return (
+        click.argument("texts", nargs=-1),
+        click.option(
+            "--views",
+            "view_names",
+            multiple=True,
+            metavar="NAME",
+            help="A view (image name or stem) to query; repeatable (default: the "
+            "labelled views, else every train view).",
+        ),
+        click.option(
+            "--out",
+            type=click.Path(path_type=Path),
+            default=None,
+            help="Folder for the PNGs and results.json (default: "
+            "<work>/<scene>/query-out/<variant>).",
+        ),
+        click.option("--no-pictures", is_flag=True, help="Write results.json only."),
     )
-    @click.option(
-        "--variant",
-        type=click.Choice(list(VARIANTS)),
-        default="male",
-        show_default=True,
-        help="Which trained field to query (see `ptovs train --variant`).",
-    )
-    @click.option(
-        "--set",
-        "sets",
-        multiple=True,
-        metavar="STAGE.KEY=VALUE",
-        help="Override a config value of any stage (repeatable), e.g. "
-        "query.fusion=pixmax.",
-    )
-    @click.option(
-        "--out",
-        type=click.Path(path_type=Path),
-        default=None,
-        help="Folder for the PNGs and results.json (default: "
-        "<work>/<scene>/query-out/<variant>).",
-    )
-    @click.option("--no-pictures", is_flag=True, help="Write results.json only.")
-    @click.option("--force", is_flag=True, help="Recompute even if cached.")
-    @click.pass_obj
-    def command(
-        obj: RunContext,
-        texts: tuple[str, ...],
-        scene_name: str | None,
-        data: Path | None,
-        view_names: tuple[str, ...],
-        variant: str,
-        sets: tuple[str, ...],
-        out: Path | None,
-        no_pictures: bool,
-        force: bool,
-    ) -> None:
-        from ptovs.cli import ALL_STAGES, _split_sets
-        from ptovs.variants import variant_sets
-
-        over: dict[str, Any] = {}
-        if texts:
-            over["queries"] = list(texts)
-        if view_names:
-            over["views"] = list(view_names)
-        ctx = RunContext(obj.work_dir, merge(obj.config, {NAME: over}), obj.force)
-        ref = resolve_scene(ctx, scene_name, data)
-        split = _split_sets(sets, (*ALL_STAGES, NAME))
-        chain = Chain(ctx, ref, variant_sets(variant, split))
-        art = execute(chain, NAME, force=force or obj.force)
-        try:
-            folder = out or obj.work_dir / ref.name / "query-out" / variant
-            path, records = write_outputs(
-                art, ref.load(), folder, pictures=not no_pictures
-            )
-            for r in records:
-                click.echo(
-                    f"{r['view']}  {r['query']!r}: score {r['score']:.3f} "
-                    f"level {r['level']}, {r['mask_pixels']} px"
-                )
-            click.echo(f"query: {art.path}")
-            click.echo(f"results: {path}")
-        finally:
-            art.close()
-
-    return command
 
 
-command = _command()
+command = stage_command(
+    NAME,
+    VERSION,
+    Config,
+    Inputs,
+    run,
+    count=_count,
+    extra_key=text_key,
+    extras=CommandExtras(
+        options=_options(),
+        variant="one",
+        overrides=_overrides,
+        report=_report,
+        force_help="Recompute even if cached.",
+    ),
+)
 
 __all__ = ["Config", "Inputs", "command", "run", "text_key", "write_outputs"]
