@@ -128,6 +128,35 @@ def test_sfm_is_cached_and_the_stage_reads_it(posed, photos, tmp_path):
     assert "views" in res.output and "reconstruct" in res.output
 
 
+def test_sfm_is_a_stage_status_shows_and_never_runs(posed, photos, tmp_path):
+    """`ptovs status` on unposed photos shows the sfm stage missing and runs
+    nothing; `ptovs sfm` finds the cached model; status then shows it done."""
+    data, _ = photos
+    out, work = posed
+    fresh = tmp_path / "fresh"
+    res = CliRunner().invoke(
+        main, ["--work-dir", str(fresh), "status", "--data", str(data)]
+    )
+    assert res.exit_code == 0, res.output
+    line = next(x for x in res.output.splitlines() if x.strip().startswith("sfm"))
+    assert "missing" in line and "ptovs sfm --data" in line
+    assert not (fresh / "landmark" / "sfm").exists()  # status ran nothing
+    res = CliRunner().invoke(
+        main, ["--work-dir", str(work), "sfm", "--data", str(data)]
+    )
+    assert res.exit_code == 0, res.output
+    assert str(out) in res.output and "done" in res.output
+    res = CliRunner().invoke(
+        main, ["--work-dir", str(work), "status", "--data", str(data)]
+    )
+    line = next(x for x in res.output.splitlines() if x.strip().startswith("sfm"))
+    assert "done" in line
+    res = CliRunner().invoke(
+        main, ["--work-dir", str(work), "sfm", "--data", str(out.parent.parent)]
+    )
+    assert res.exit_code != 0 and "unposed photos" in res.output
+
+
 def test_split_names():
     names = [f"{i:03d}.jpg" for i in range(30)]
     test = _split_names(names, 0.1)

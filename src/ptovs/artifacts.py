@@ -579,3 +579,43 @@ class Store:
         return ArtifactWriter(
             self.path(scene, stage, key), dict(attrs, key=key, stage=stage)
         )
+
+
+def fingerprint_files(files: Iterable[Path], root: Path, cache: Path | None) -> str:
+    """sha256 over (relative path, content sha256) of every file.
+
+    File digests are cached by (size, mtime_ns), so a 3,000-image scene is hashed
+    once; a file touched or replaced is hashed again.
+    """
+    root = Path(root).resolve()
+    memo: dict[str, list[Any]] = {}
+    if cache is not None and cache.is_file():
+        try:
+            memo = json.loads(cache.read_text())
+        except (OSError, ValueError):
+            memo = {}
+    records, changed = [], False
+    for path in sorted(Path(p).resolve() for p in files):
+        st = path.stat()
+        try:
+            rel = path.relative_to(root).as_posix()
+        except ValueError:  # e.g. labels beside the scene folder
+            rel = path.relative_to(root.parent).as_posix()
+        hit = memo.get(str(path))
+        if hit and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
+            digest = hit[2]
+        else:
+            h = hashlib.sha256()
+            with path.open("rb") as fh:
+                for block in iter(lambda: fh.read(1 << 20), b""):
+                    h.update(block)
+            digest = h.hexdigest()
+            memo[str(path)] = [st.st_size, st.st_mtime_ns, digest]
+            changed = True
+        records.append(f"{rel}:{digest}")
+    if cache is not None and changed:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        tmp = cache.with_name(cache.name + f".{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(memo))
+        os.replace(tmp, cache)
+    return hashlib.sha256("\n".join(records).encode()).hexdigest()

@@ -173,10 +173,22 @@ def status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:
 
     States: done; partial (an interrupted run, resumable); missing; stale (an
     artifact exists under an older key because an upstream or the config changed).
+    A folder of unposed photos first shows its `sfm` stage; status never runs it.
     """
-    from ptovs.stage import Chain, all_stages
+    from ptovs.stage import SFM, Chain, all_stages, pose_photos, scene_source
 
-    ref = resolve_scene(obj, scene_name, data)
+    name, folder, photos = scene_source(scene_name, data)
+    sfm_line = None
+    if photos is not None:
+        key, state, _ = pose_photos(obj, name, photos, run=False)
+        if state != "done":
+            click.echo(f"scene {name}: {photos} (unposed photos)")
+            click.echo(
+                f"  {SFM:<20} {key[:12]}  {state:<8} run: ptovs sfm --data {folder}"
+            )
+            return
+        sfm_line = f"  {SFM:<20} {key[:12]}  done     {photos}"
+    ref = resolve_scene(obj, scene_name, data, run_sfm=False)
     scene = ref.load()
     chain = Chain(obj, ref)
     click.echo(f"scene {ref.name}: {ref.data}")
@@ -187,6 +199,8 @@ def status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:
         f"{n_lab} labelled), {len(scene.points_xyz)} points, "
         f"downscale r={scene.downscale}"
     )
+    if sfm_line:
+        click.echo(sfm_line)
     click.echo(f"  {'scene':<20} {ref.key()[:12]}  input")
     stages = all_stages()
     if not stages:

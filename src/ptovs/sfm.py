@@ -441,17 +441,45 @@ def _materialise(
 def _photos_key(
     photos: list[Path], folder: Path, cache: Path, config: SfmConfig
 ) -> str:
-    from ptovs.artifacts import artifact_key
-    from ptovs.stage import fingerprint_files
+    from ptovs.artifacts import artifact_key, fingerprint_files
 
     digest = fingerprint_files(photos, folder, cache)  # cached by size and mtime
     return artifact_key(NAME, VERSION, dataclasses.asdict(config), {"photos": digest})
 
 
-def posed_scene(
+def sfm_state(
     photo_folder: Path, scene: str, work_dir: Path, config: SfmConfig
+) -> tuple[str, str, Path]:
+    """(key, state, scene folder) of a photo folder's SfM, without running it.
+
+    State: "done" (the posed scene is there), "partial" (the model is stored, the
+    undistorted scene folder is not: `ptovs sfm` rebuilds it in seconds) or
+    "missing".
+    """
+    photos = list_photos(photo_folder)
+    key = _photos_key(
+        photos, photo_folder, Path(work_dir) / scene / ".fingerprints.json", config
+    )
+    store = Store(work_dir)
+    out = store.path(scene, NAME, key).with_suffix("")  # <work>/<scene>/sfm/<key12>/
+    art = store.lookup(scene, NAME, key)
+    if art is None:
+        return key, "missing", out
+    art.close()
+    done = (out / "sparse").is_dir() and (out / "images").is_dir()
+    return key, "done" if done else "partial", out
+
+
+def posed_scene(
+    photo_folder: Path,
+    scene: str,
+    work_dir: Path,
+    config: SfmConfig,
+    *,
+    force: bool = False,
 ) -> Path:
-    """The materialised scene folder for a photo folder (runs SfM on a cache miss)."""
+    """The materialised scene folder for a photo folder (runs SfM on a cache miss,
+    or always with `force`)."""
     from ptovs.artifacts import provenance
 
     photos = list_photos(photo_folder)
@@ -462,6 +490,10 @@ def posed_scene(
     out = store.path(scene, NAME, key).with_suffix("")  # <work>/<scene>/sfm/<key12>/
     with store.lock(scene, NAME, key):
         art = store.lookup(scene, NAME, key)
+        if art is not None and force:
+            art.close()
+            os.remove(art.path)
+            art = None
         if art is not None and (out / "sparse").is_dir() and (out / "images").is_dir():
             art.close()
             return out

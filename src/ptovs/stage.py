@@ -22,7 +22,6 @@ work, and streams `run` into a resumable artifact.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import inspect
 import json
 import logging
@@ -36,7 +35,13 @@ from typing import Any, Literal
 import click
 from tqdm import tqdm
 
-from ptovs.artifacts import Artifact, Store, artifact_key, provenance
+from ptovs.artifacts import (
+    Artifact,
+    Store,
+    artifact_key,
+    fingerprint_files,
+    provenance,
+)
 from ptovs.config import build_config, canonical_json, merge, parse_sets
 from ptovs.errors import InputError, MissingInputError
 
@@ -56,7 +61,7 @@ PIPELINE = (
     "evaluate",
 )
 STAGE_MODULES: dict[str, str] = {
-    name: "ptovs.stages." + name.replace("-", "_") for name in PIPELINE
+    name: "ptovs.stages." + name.replace("-", "_") for name in ("sfm", *PIPELINE)
 }
 
 
@@ -68,6 +73,7 @@ def stages_between(first: str, last: str) -> tuple[str, ...]:
 EXTRACT_STAGES = stages_between("render-appearances", "uncertainty")  # ptovs extract
 TRAIN_STAGES = stages_between("train-ae", "train-male")  # ptovs train
 SCENE = "scene"  # pseudo-stage: the input data itself
+SFM = "sfm"  # the stage before the chain: a folder of unposed photos → a posed scene
 SCENE_VERSION = 1
 
 
@@ -213,46 +219,6 @@ class SceneRef:
     @property
     def cache_path(self) -> Path:
         return self.work_dir / self.name / ".fingerprints.json"
-
-
-def fingerprint_files(files: Iterable[Path], root: Path, cache: Path | None) -> str:
-    """sha256 over (relative path, content sha256) of every file.
-
-    File digests are cached by (size, mtime_ns), so a 3,000-image scene is hashed
-    once; a file touched or replaced is hashed again.
-    """
-    root = Path(root).resolve()
-    memo: dict[str, list[Any]] = {}
-    if cache is not None and cache.is_file():
-        try:
-            memo = json.loads(cache.read_text())
-        except (OSError, ValueError):
-            memo = {}
-    records, changed = [], False
-    for path in sorted(Path(p).resolve() for p in files):
-        st = path.stat()
-        try:
-            rel = path.relative_to(root).as_posix()
-        except ValueError:  # e.g. labels beside the scene folder
-            rel = path.relative_to(root.parent).as_posix()
-        hit = memo.get(str(path))
-        if hit and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
-            digest = hit[2]
-        else:
-            h = hashlib.sha256()
-            with path.open("rb") as fh:
-                for block in iter(lambda: fh.read(1 << 20), b""):
-                    h.update(block)
-            digest = h.hexdigest()
-            memo[str(path)] = [st.st_size, st.st_mtime_ns, digest]
-            changed = True
-        records.append(f"{rel}:{digest}")
-    if cache is not None and changed:
-        cache.parent.mkdir(parents=True, exist_ok=True)
-        tmp = cache.with_name(cache.name + f".{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(memo))
-        os.replace(tmp, cache)
-    return hashlib.sha256("\n".join(records).encode()).hexdigest()
 
 
 class Chain:
@@ -582,9 +548,10 @@ def variant_chain(
     return Chain(ctx, ref, variant_sets(variant, split)), ref
 
 
-def resolve_scene(
-    ctx: RunContext, scene_name: str | None, data: Path | None, sets: Iterable[str] = ()
-) -> SceneRef:
+def scene_source(
+    scene_name: str | None, data: Path | None
+) -> tuple[str, Path, Path | None]:
+    """(scene name, --data folder, its photo folder if it holds unposed photos)."""
     if scene_name is None and data is None:
         raise click.UsageError("give --scene NAME and/or --data FOLDER")
     if data is None:
@@ -597,12 +564,43 @@ def resolve_scene(
             "(PhotoTourism: <scene>/dense/images + dense/sparse; COLMAP: images/ + sparse/0), "
             "or make one with: ptovs synth-scene data --preset tiny"
         )
-    from ptovs.sfm import SfmConfig, photo_dir, posed_scene
+    from ptovs.sfm import photo_dir
 
-    photos = photo_dir(Path(data))
+    return scene_name, Path(data), photo_dir(Path(data))
+
+
+def pose_photos(
+    ctx: RunContext, scene_name: str, photos: Path, *, run: bool, force: bool = False
+) -> tuple[str, str, Path]:
+    """(key, state, posed scene folder) of the `sfm` stage for a photo folder:
+    run (cached, under its lock) if `run`, else only looked up (`ptovs status`)."""
+    from ptovs.sfm import SfmConfig, posed_scene, sfm_state
+
+    config = build_config(SfmConfig, ctx.section(SFM), SFM)
+    if run:
+        posed_scene(photos, scene_name, ctx.work_dir, config, force=force)
+    return sfm_state(photos, scene_name, ctx.work_dir, config)
+
+
+def resolve_scene(
+    ctx: RunContext,
+    scene_name: str | None,
+    data: Path | None,
+    sets: Iterable[str] = (),
+    *,
+    run_sfm: bool = True,
+) -> SceneRef:
+    """The scene a command works on. A folder of unposed photos is posed first by
+    the `sfm` stage (cached), unless `run_sfm` is False: then a missing SfM is an
+    error naming `ptovs sfm`."""
+    scene_name, data, photos = scene_source(scene_name, data)
     if photos is not None:  # unposed photos: SfM first (cached), then a COLMAP scene
-        sfm_config = build_config(SfmConfig, ctx.section("sfm"), "sfm")
-        data = posed_scene(photos, scene_name, ctx.work_dir, sfm_config)
+        key, state, data = pose_photos(ctx, scene_name, photos, run=run_sfm)
+        if state != "done":
+            raise MissingInputError(
+                f"no {SFM} for {scene_name} (key {key[:12]}, {state}); "
+                f"run: ptovs sfm --data {photos}"
+            )
     section = ctx.section("scene", sets)
     config = build_config(SceneConfig, section, "scene")
     return SceneRef(scene_name, Path(data), config, ctx.work_dir)

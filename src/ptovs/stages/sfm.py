@@ -1,0 +1,53 @@
+"""Structure from motion: a folder of unposed photos → a posed COLMAP scene.
+
+    ptovs sfm --data photos/trevi          # photos/trevi/images/*.jpg or photos/trevi/*.jpg
+
+The stage before the chain (`ptovs.sfm` has the method and its choices). Its key is
+the photos' sha256 and the `[sfm]` options; the model is stored as an artifact,
+`<work>/<scene>/sfm/<key[:12]>.h5`, and materialised as an ordinary scene folder
+beside it, `<work>/<scene>/sfm/<key[:12]>/` (images/, sparse/, <scene>.tsv), that
+every later stage reads. Any other command given such a photo folder runs this
+stage first (cached); `ptovs status` only shows it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from ptovs.stage import SFM, RunContext, pose_photos, scene_options, scene_source
+
+
+@click.command(name=SFM, help=__doc__)
+@scene_options
+@click.option(
+    "--set",
+    "sets",
+    multiple=True,
+    metavar="KEY=VALUE",
+    help="Override an [sfm] config value (repeatable), e.g. pairing=exhaustive "
+    "(or sfm.pairing=exhaustive).",
+)
+@click.option("--force", is_flag=True, help="Run SfM again even if it is cached.")
+@click.pass_obj
+def command(
+    obj: RunContext,
+    scene_name: str | None,
+    data: Path | None,
+    sets: tuple[str, ...],
+    force: bool,
+) -> None:
+    from ptovs.config import merge, parse_sets
+    from ptovs.stage import split_sets
+
+    name, folder, photos = scene_source(scene_name, data)
+    if photos is None:
+        raise click.UsageError(
+            f"{folder} is already a posed scene (dense/ or sparse/ inside) or holds "
+            "no photos: sfm takes a folder of unposed photos (DIR/images/* or DIR/*)"
+        )
+    items = split_sets(sets, (SFM,), default=SFM)[SFM]
+    ctx = RunContext(obj.work_dir, merge(obj.config, parse_sets(items, SFM)), obj.force)
+    key, state, out = pose_photos(ctx, name, photos, run=True, force=force or obj.force)
+    click.echo(f"{SFM}: {out} (key {key[:12]}, {state})")
