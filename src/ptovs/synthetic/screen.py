@@ -11,7 +11,7 @@ included, and only adds noise to the benchmark.
 The rule, for a part and its phrase q: render each evaluation camera under the
 neutral appearance without occluders (one sample per pixel), cut each labelled instance of the part
 (its truth mask, as the label encodes it) into a segment crop exactly as the
-pipeline crops segments (`ptovs.encoders.prepare_crop`), embed it with the
+pipeline crops segments (`ptovs.crop.prepare_crop`), embed it with the
 stand-in encoder and take its margin
 
     m = cos(crop, q) − max_j cos(crop, n_j)   over the negatives n_j,
@@ -115,7 +115,7 @@ def crop_margins(
     Returns:
         {part id: [n] float64 margins}, one per labelled instance.
     """
-    from ptovs.encoders import prepare_crop
+    from ptovs.crop import prepare_crop
     from ptovs.encoders.synthetic import SyntheticEncoder
 
     enc = SyntheticEncoder(vocabulary)

@@ -1710,7 +1710,7 @@ def landmark_swatch(desc: dict, size: int = 224) -> np.ndarray:
         i.e. outside the mask) cropped and padded exactly as `prepare_crop`
         crops a segment; pixels inside the landmark are never black.
     """
-    from ptovs.encoders import prepare_crop  # here: encoders import this module
+    from ptovs.crop import prepare_crop
 
     world = World.from_dict(desc["world"])
     cam = landmark_camera(world, float(desc["azimuth"]), int(desc.get("px", 128)))
