@@ -1,0 +1,228 @@
+"""Working resolution, image decoding and per-pixel maps at a view's size."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ptovs.errors import InputError, MissingInputError
+
+logger = logging.getLogger(__name__)
+
+
+RESIZE_KINDS = ("nearest", "area", "linear")
+
+
+def working_size(width: int, height: int, downscale: int) -> tuple[int, int]:
+    """Working image size for the downscale factor r.
+
+    Args:
+        width, height: full size (COLMAP camera).
+        downscale: integer r >= 1.
+
+    Returns:
+        (width, height) = (round(W/r), round(H/r)), at least 1 each. Python's
+        round (halves to even) as in the authors' 3DGS loader, so that our pixel
+        grid equals theirs on the real scenes (an odd width 97 at r=2 gives 48).
+    """
+    r = check_downscale(downscale)
+    return max(1, round(width / r)), max(1, round(height / r))
+
+
+def scale_intrinsics(
+    K: np.ndarray,  # [3, 3]
+    full_size: tuple[int, int],
+    new_size: tuple[int, int],
+) -> np.ndarray:
+    """Scale a pinhole K from one image size to another.
+
+    Args:
+        K: intrinsics at `full_size`, pixel centres at +0.5 (COLMAP convention).
+        full_size, new_size: (width, height).
+
+    Returns:
+        K at `new_size` [3, 3] float64: fx, cx times newW/W; fy, cy times newH/H.
+    """
+    sx = new_size[0] / full_size[0]
+    sy = new_size[1] / full_size[1]
+    out = np.array(K, dtype=np.float64, copy=True)
+    out[0, :] *= sx
+    out[1, :] *= sy
+    return out
+
+
+def check_downscale(downscale: Any) -> int:
+    if isinstance(downscale, str) and downscale.strip().isdigit():
+        downscale = int(downscale.strip())
+    if isinstance(downscale, bool) or not isinstance(downscale, int | np.integer):
+        raise InputError(
+            f"downscale must be 'auto' or an integer >= 1, got {downscale!r}; "
+            "e.g. --set scene.downscale=2"
+        )
+    if downscale < 1:
+        raise InputError(
+            f"downscale must be an integer >= 1, got {downscale}; "
+            "e.g. --set scene.downscale=2"
+        )
+    return int(downscale)
+
+
+_warned_truncated: set[str] = set()
+
+
+def jpeg_truncated(path: Path) -> bool:
+    """True for a JPEG whose data does not end with the end-of-image marker.
+
+    libjpeg decodes such a file with a warning on stderr that names no file and
+    fills the missing rows with grey; ptovs checks the marker itself to say which.
+    """
+    path = Path(path)
+    if path.suffix.lower() not in (".jpg", ".jpeg"):
+        return False
+    with open(path, "rb") as fh:
+        head = fh.read(2)
+        fh.seek(0, 2)
+        size = fh.tell()
+        fh.seek(max(0, size - 64))
+        tail = fh.read().rstrip(b"\x00")
+    return head == b"\xff\xd8" and not tail.endswith(b"\xff\xd9")
+
+
+def load_image(view: Any) -> np.ndarray:  # view: a ptovs.scene.View
+    """Decode a view's image at working size.
+
+    Args:
+        view: the view (its `image_path`, full and working sizes).
+
+    Returns:
+        RGB float32 [H, W, 3] in [0, 1] at (view.height, view.width). Grayscale is
+        replicated to 3 channels, alpha dropped, 16-bit scaled by 1/65535.
+    """
+    path = view.image_path
+    if not path.is_file():
+        raise MissingInputError(f"image {path} does not exist; restore it")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise InputError(
+            f"could not decode image {path} (corrupt or unsupported format); "
+            "replace it with a readable JPEG or PNG"
+        )
+    if str(path) not in _warned_truncated and jpeg_truncated(path):
+        _warned_truncated.add(str(path))
+        logger.warning(
+            "image %s is a truncated JPEG (no end-of-image marker): the decoder fills "
+            "the missing rows with grey; used as is (replace the file to fix it)",
+            path,
+        )
+    if img.dtype == np.uint8:
+        scale = 1.0 / 255.0
+    elif img.dtype == np.uint16:
+        scale = 1.0 / 65535.0
+    elif img.dtype in (np.float32, np.float64):
+        scale = 1.0
+    else:
+        raise InputError(
+            f"image {path} has unsupported sample type {img.dtype}; "
+            "convert it to 8- or 16-bit JPEG/PNG"
+        )
+    if img.ndim == 2:
+        img = img[:, :, None]
+    c = img.shape[2]
+    if c == 1:
+        img = np.repeat(img, 3, axis=2)
+    elif c == 2:  # gray + alpha
+        img = np.repeat(img[:, :, :1], 3, axis=2)
+    elif c in (3, 4):
+        img = img[:, :, 2::-1]  # BGR(A) -> RGB, alpha dropped
+    else:
+        raise InputError(f"image {path} has {c} channels; expected 1, 2, 3 or 4")
+    h, w = img.shape[:2]
+    if (w, h) != (view.full_width, view.full_height):
+        raise InputError(
+            f"image {path} is {w}x{h} but its COLMAP camera is "
+            f"{view.full_width}x{view.full_height}; the images must be the ones the "
+            "model was built from (e.g. the undistorted images/ that "
+            "image_undistorter wrote next to the model)"
+        )
+    out = img.astype(np.float32) * np.float32(scale)
+    if scale == 1.0:
+        out = np.clip(out, 0.0, 1.0)
+    if (view.width, view.height) != (w, h):
+        out = cv2.resize(out, (view.width, view.height), interpolation=cv2.INTER_AREA)
+    return np.ascontiguousarray(out)  # [H, W, 3]
+
+
+def resize_map(
+    arr: np.ndarray,  # [H, W] or [H, W, C]
+    size: tuple[int, int],
+    *,
+    kind: str = "nearest",
+) -> np.ndarray:
+    """Resize a per-pixel map.
+
+    Args:
+        arr: [H, W] or [H, W, C], any C.
+        size: target (H, W), numpy order.
+        kind: "nearest" (any dtype; pixel-centre sampling src = floor((x + 0.5) *
+            H/H'), exact for label and id maps), "area" (cv2.INTER_AREA) or
+            "linear" (cv2.INTER_LINEAR); the last two need a float or bool map and
+            return float32 (float64 stays float64).
+
+    Returns:
+        [H', W'] or [H', W', C], same dtype for "nearest".
+    """
+    if kind not in RESIZE_KINDS:
+        raise ValueError(f"kind must be one of {RESIZE_KINDS}, got {kind!r}")
+    arr = np.asarray(arr)
+    if arr.ndim not in (2, 3):
+        raise ValueError(f"resize_map needs [H, W] or [H, W, C], got {arr.shape}")
+    th, tw = int(size[0]), int(size[1])
+    if th < 1 or tw < 1:
+        raise ValueError(f"target size must be positive (H, W), got {size}")
+    h, w = arr.shape[:2]
+    if (h, w) == (th, tw):
+        return arr.copy()
+    if kind == "nearest":
+        rows = np.minimum(((np.arange(th) + 0.5) * (h / th)).astype(np.int64), h - 1)
+        cols = np.minimum(((np.arange(tw) + 0.5) * (w / tw)).astype(np.int64), w - 1)
+        return arr[rows[:, None], cols[None, :]]
+    if arr.dtype != np.bool_ and not np.issubdtype(arr.dtype, np.floating):
+        raise ValueError(
+            f"kind={kind!r} interpolates values; use a float map, not {arr.dtype} "
+            "(use kind='nearest' for labels and ids)"
+        )
+    if arr.dtype not in (np.float32, np.float64):  # bool, float16: cv2 wants f32
+        arr = arr.astype(np.float32)
+    interp = cv2.INTER_AREA if kind == "area" else cv2.INTER_LINEAR
+    if arr.ndim == 2:
+        return cv2.resize(arr, (tw, th), interpolation=interp)
+    # cv2 handles at most 4 channels for INTER_AREA: resize in groups of 4
+    parts = [
+        cv2.resize(arr[:, :, i : i + 4], (tw, th), interpolation=interp).reshape(
+            th, tw, -1
+        )
+        for i in range(0, arr.shape[2], 4)
+    ]
+    return np.concatenate(parts, axis=2)
+
+
+def check_size(arr: np.ndarray, view: Any, what: str) -> None:  # a View
+    """Raise InputError unless a per-pixel map is at the view's working size.
+
+    Args:
+        arr: [H, W, ...] map.
+        view: the view it belongs to.
+        what: what the map is, for the message (e.g. "u_t of extract-features").
+    """
+    shape = tuple(np.shape(arr))
+    if len(shape) < 2 or shape[:2] != (view.height, view.width):
+        raise InputError(
+            f"{what} for view {view.name} has shape {shape}, but the working size "
+            f"is (H, W) = ({view.height}, {view.width}); it was made at another "
+            "downscale factor: rerun the stage that wrote it with the scene's "
+            "downscale"
+        )
