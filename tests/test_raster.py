@@ -24,6 +24,7 @@ from ptovs.raster import (
     eval_sh,
     render,
 )
+from ptovs.raster import _backends as raster_backends
 from ptovs.raster import _reference as ref
 from ptovs.raster._common import Projected, intersect, project
 
@@ -690,8 +691,8 @@ def test_available_backends_and_auto():
 
 
 def test_unavailable_backend_warns_once_and_falls_back(monkeypatch):
-    monkeypatch.setitem(raster._BACKENDS, "cpu", lambda: None)
-    monkeypatch.setattr(raster, "_warned", set())
+    monkeypatch.setitem(raster_backends.BACKENDS, "cpu", lambda: None)
+    monkeypatch.setattr(raster_backends, "_warned", set())
     gauss, camera, colors = random_scene(30, 8, 6, seed=2)
     with pytest.warns(RuntimeWarning, match="unavailable"):
         out = render(gauss, camera, colors, backend="cpu")
