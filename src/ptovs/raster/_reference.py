@@ -249,12 +249,32 @@ def contributors(
             torch.index_select(x, 0, still) for x in (g_pix, cx, cy, done, trans, count)
         )
 
-    # Counting sort into pixel order: slot = first pair of the pixel + rank in it.
+    return _pixel_order(
+        total, out_pix, out_pos, out_gid, out_w if weights else None, means2d.dtype
+    )
+
+
+def _pixel_order(
+    total: Tensor,
+    out_pix: list[Tensor],
+    out_pos: list[Tensor],
+    out_gid: list[Tensor],
+    out_w: list[Tensor] | None,
+    dtype: torch.dtype,
+) -> Contributors:
+    """Counting sort of the rounds' pairs into pixel order: a pair's slot is the
+    first slot of its pixel (the CSR row start) plus its rank in the pixel."""
+    i64 = dict(dtype=torch.int64, device=total.device)
+    n_pix = total.shape[0]
     crow = torch.zeros(n_pix + 1, **i64)
     crow[1:] = torch.cumsum(total, 0)
     n_pairs = int(crow[-1])
     gid = torch.empty(n_pairs, **i64)
-    w = means2d.new_empty(n_pairs) if weights else None
+    w = (
+        torch.empty(n_pairs, dtype=dtype, device=total.device)
+        if out_w is not None
+        else None
+    )
     for r, (pix, pos) in enumerate(zip(out_pix, out_pos, strict=True)):
         dest = _take(crow, pix) + pos
         gid.scatter_(0, dest, out_gid[r])
