@@ -212,41 +212,15 @@ def train(
         pred = out.image
         if nets is not None:
             pred = composite_background(pred, out.alpha, cam, nets, emb)
-        if masked:
-            m = F.interpolate(mask_lo, size=(cam.height, cam.width), mode="bilinear")
-            w = (1.0 - m[0, 0])[..., None]
-            l1 = ((pred - gt) * w).abs().mean()
-            loss = (
-                (1 - cfg.ssim_lambda) * l1
-                + cfg.ssim_lambda * (1 - ssim(pred * w, gt * w))
-                + cfg.mask_reg * mask_lo.mean()
-            )
-        else:
-            l1 = (pred - gt).abs().mean()
-            loss = (1 - cfg.ssim_lambda) * l1 + cfg.ssim_lambda * (1 - ssim(pred, gt))
+        loss = _photo_loss(cfg, pred, gt, mask_lo if masked else None)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"non-finite loss at iteration {step} (view {i})")
         loss.backward()
 
-        with torch.no_grad():
-            # densification statistics: screen-space gradient in 3DGS's NDC units
-            g2 = out.means2d.grad
-            seen = (out.radii > 0).any(1)
-            if g2 is not None:
-                gn = torch.sqrt(
-                    (g2[:, 0] * cam.width * 0.5) ** 2
-                    + (g2[:, 1] * cam.height * 0.5) ** 2
-                )
-                state.grad_accum[seen] += gn[seen]
-                state.grad_denom[seen] += 1
-        model.opt.step()
-        model.opt.zero_grad(set_to_none=True)
-        if nets is not None:
-            state.nets_opt.step()
-            state.nets_opt.zero_grad(set_to_none=True)
-        else:
-            state.bg_opt.step()
-            state.bg_opt.zero_grad(set_to_none=True)
+        _accumulate_grads(state, out.means2d.grad, out.radii, cam)
+        for opt in (model.opt, state.nets_opt if nets is not None else state.bg_opt):
+            opt.step()
+            opt.zero_grad(set_to_none=True)
 
         state.step = step = step + 1
         _densify_schedule(cfg, state, step)
@@ -269,6 +243,39 @@ def train(
     bar.close()
     state.seconds = time.perf_counter() - t_start
     return state
+
+
+def _photo_loss(
+    cfg: Any, pred: torch.Tensor, gt: torch.Tensor, mask_lo: torch.Tensor | None
+) -> torch.Tensor:
+    """(1 - λ) L1 + λ (1 - SSIM), both weighted by 1 - M once the transient mask
+    `mask_lo` [1, 1, s, s] is on (None before its warm-up), plus its regulariser."""
+    if mask_lo is not None:
+        h, w_ = pred.shape[:2]  # the camera's size
+        m = F.interpolate(mask_lo, size=(h, w_), mode="bilinear")
+        w = (1.0 - m[0, 0])[..., None]
+        l1 = ((pred - gt) * w).abs().mean()
+        return (
+            (1 - cfg.ssim_lambda) * l1
+            + cfg.ssim_lambda * (1 - ssim(pred * w, gt * w))
+            + cfg.mask_reg * mask_lo.mean()
+        )
+    l1 = (pred - gt).abs().mean()
+    return (1 - cfg.ssim_lambda) * l1 + cfg.ssim_lambda * (1 - ssim(pred, gt))
+
+
+@torch.no_grad()
+def _accumulate_grads(
+    state: TrainState, g2: torch.Tensor | None, radii: torch.Tensor, cam: Camera
+) -> None:
+    """Densification statistics: the screen-space gradient in 3DGS's NDC units."""
+    seen = (radii > 0).any(1)
+    if g2 is not None:
+        gn = torch.sqrt(
+            (g2[:, 0] * cam.width * 0.5) ** 2 + (g2[:, 1] * cam.height * 0.5) ** 2
+        )
+        state.grad_accum[seen] += gn[seen]
+        state.grad_denom[seen] += 1
 
 
 def _densify_schedule(cfg: Any, state: TrainState, step: int) -> None:
