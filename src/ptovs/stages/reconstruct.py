@@ -29,6 +29,7 @@ from ptovs.field.render import WildField
 from ptovs.field.train import train, visibility
 from ptovs.raster import VERSION as RASTER_VERSION
 from ptovs.raster import Camera, Gaussians
+from ptovs.scene import Scene
 from ptovs.stage import scene_input, stage_command
 
 log = logging.getLogger(__name__)
@@ -99,6 +100,59 @@ def _views_and_images(scene):
     return train_views, images, cams
 
 
+def _trained(
+    scene: Scene,
+    images: list[np.ndarray],
+    cams: list[Camera],
+    config: Config,
+    ckpt: Checkpoint | None,
+) -> tuple[dict[str, torch.Tensor], Any, dict | None, dict, torch.Tensor | None]:
+    """Train the field (resuming from `ckpt`) and drop the Gaussians no train view
+    sees. Returns the parameters, the nets, the history, the metrics and the
+    constant background (plain 3DGS only)."""
+    state = train(
+        config,
+        images,
+        cams,
+        (scene.points_xyz, scene.points_rgb),
+        load=(ckpt.load if ckpt else lambda: None),
+        save=(ckpt.save if ckpt else lambda s: None),
+        desc=f"{NAME} {scene.name}",
+    )
+    if ckpt is not None:  # the final state: a crash while writing loses nothing
+        ckpt.save(state.to_dict())
+    model, nets = state.model, state.nets
+    n_before = len(model)
+    weights = visibility(model, cams, config.backend)
+    unseen = weights < config.prune_unseen
+    if unseen.all():
+        raise ValueError(
+            f"no Gaussian is seen by any train view of {scene.name}; the poses "
+            "or points3D are inconsistent"
+        )
+    model.keep(~unseen)
+    params = {k: v.detach() for k, v in model.params.items()}
+    params["sh"] = torch.cat((params.pop("sh_dc"), params.pop("sh_rest")), 1)
+    history = state.history
+    metrics = {
+        "gaussians_trained": n_before,
+        "gaussians_unseen_removed": int(unseen.sum()),
+        "gaussians": len(model),
+        "train_seconds": round(state.seconds, 2),
+        "seconds_per_iteration": round(state.seconds / max(config.iterations, 1), 4),
+        "iterations": config.iterations,
+    }
+    log.info(
+        "%s: %d Gaussians (%d seen by no train view removed), %.1f s",
+        scene.name,
+        len(model),
+        int(unseen.sum()),
+        state.seconds,
+    )
+    background = torch.sigmoid(state.background.detach()) if nets is None else None
+    return params, nets, history, metrics, background
+
+
 def run(
     inputs: Inputs, config: Config, skip=frozenset(), ckpt: Checkpoint | None = None
 ) -> Iterator[tuple[str | None, dict]]:
@@ -111,47 +165,10 @@ def run(
         field = import_released(config.import_dir, config.import_iteration)
         nets, metrics, history = field.nets, {"imported_from": config.import_dir}, None
         params = field.raw
+        background = None
     else:
-        state = train(
-            config,
-            images,
-            cams,
-            (scene.points_xyz, scene.points_rgb),
-            load=(ckpt.load if ckpt else lambda: None),
-            save=(ckpt.save if ckpt else lambda s: None),
-            desc=f"{NAME} {scene.name}",
-        )
-        if ckpt is not None:  # the final state: a crash while writing loses nothing
-            ckpt.save(state.to_dict())
-        model, nets = state.model, state.nets
-        n_before = len(model)
-        weights = visibility(model, cams, config.backend)
-        unseen = weights < config.prune_unseen
-        if unseen.all():
-            raise ValueError(
-                f"no Gaussian is seen by any train view of {scene.name}; the poses "
-                "or points3D are inconsistent"
-            )
-        model.keep(~unseen)
-        params = {k: v.detach() for k, v in model.params.items()}
-        params["sh"] = torch.cat((params.pop("sh_dc"), params.pop("sh_rest")), 1)
-        history = state.history
-        metrics = {
-            "gaussians_trained": n_before,
-            "gaussians_unseen_removed": int(unseen.sum()),
-            "gaussians": len(model),
-            "train_seconds": round(state.seconds, 2),
-            "seconds_per_iteration": round(
-                state.seconds / max(config.iterations, 1), 4
-            ),
-            "iterations": config.iterations,
-        }
-        log.info(
-            "%s: %d Gaussians (%d seen by no train view removed), %.1f s",
-            scene.name,
-            len(model),
-            int(unseen.sum()),
-            state.seconds,
+        params, nets, history, metrics, background = _trained(
+            scene, images, cams, config, ckpt
         )
 
     for name, p in params.items():
@@ -168,11 +185,7 @@ def run(
         params["sh"],
         sh_degree,
         nets,
-        background=(
-            torch.sigmoid(state.background.detach())
-            if nets is None and not config.import_dir
-            else None
-        ),
+        background=background,
     )
     if nets is not None:
         nets.eval()
