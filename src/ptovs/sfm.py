@@ -202,34 +202,17 @@ def _retrieval_pairs(db_path: Path, k: int, seed: int) -> list[tuple[str, str]]:
     return sorted(pairs)
 
 
-def run_sfm(photo_folder: Path, workdir: Path, config: SfmConfig) -> dict[str, Any]:
-    """Pose the photos; returns the report and the paths of the undistorted model.
-
-    Raises:
-        InputError: fewer than 3 photos could be registered (with what to try).
-    """
+def _extract_features(
+    db: Path, staged: Path, names: list[str], config: SfmConfig, n_threads: int
+) -> None:
+    """SIFT features of the staged photos into a fresh COLMAP database `db`."""
     import pycolmap
 
-    pycolmap.logging.minloglevel = 2
-    photos = list_photos(photo_folder)
-    if not photos:
-        raise MissingInputError(
-            f"{photo_folder} holds no photos ({sorted(IMAGE_EXTS)})"
-        )
-    t0 = time.perf_counter()
-    staged = workdir / "input"
-    names, skipped = _stage_photos(photos, staged)
-    if len(names) < MIN_REGISTERED:
-        raise InputError(
-            f"{photo_folder}: only {len(names)} usable photo(s) of {len(photos)}; "
-            f"SfM needs at least {MIN_REGISTERED} overlapping photos"
-        )
-    db = workdir / "database.db"
     db.unlink(missing_ok=True)
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "SIMPLE_RADIAL"
     ext = pycolmap.FeatureExtractionOptions()
-    ext.num_threads = min(os.cpu_count() or 1, 8)
+    ext.num_threads = n_threads
     ext.max_image_size = config.max_image_size
     ext.sift.max_num_features = config.max_num_features
     ext.sift.peak_threshold = config.peak_threshold
@@ -247,11 +230,19 @@ def run_sfm(photo_folder: Path, workdir: Path, config: SfmConfig) -> dict[str, A
         extraction_options=ext,
         device=pycolmap.Device.cpu,
     )
-    t_extract = time.perf_counter() - t0
+
+
+def _match_features(
+    db: Path, workdir: Path, names: list[str], config: SfmConfig, n_threads: int
+) -> str:
+    """Match and verify the photo pairs the pairing chooses; returns the pairing used
+    ("auto" becomes exhaustive when its estimated time fits the budget)."""
+    import pycolmap
+
     verify = pycolmap.TwoViewGeometryOptions()
     verify.min_num_inliers = config.min_num_matches
     match = pycolmap.FeatureMatchingOptions()
-    match.num_threads = ext.num_threads
+    match.num_threads = n_threads
     pairing = config.pairing
     n_pairs = len(names) * (len(names) - 1) // 2
     db_handle = pycolmap.Database.open(str(db))
@@ -269,7 +260,6 @@ def run_sfm(photo_folder: Path, workdir: Path, config: SfmConfig) -> dict[str, A
         est,
         pairing,
     )
-    t1 = time.perf_counter()
     if pairing == "exhaustive":
         pycolmap.match_exhaustive(
             db,
@@ -313,11 +303,42 @@ def run_sfm(photo_folder: Path, workdir: Path, config: SfmConfig) -> dict[str, A
             verification_options=verify,
             device=pycolmap.Device.cpu,
         )
+    return pairing
+
+
+def run_sfm(photo_folder: Path, workdir: Path, config: SfmConfig) -> dict[str, Any]:
+    """Pose the photos; returns the report and the paths of the undistorted model.
+
+    Raises:
+        InputError: fewer than 3 photos could be registered (with what to try).
+    """
+    import pycolmap
+
+    pycolmap.logging.minloglevel = 2
+    photos = list_photos(photo_folder)
+    if not photos:
+        raise MissingInputError(
+            f"{photo_folder} holds no photos ({sorted(IMAGE_EXTS)})"
+        )
+    t0 = time.perf_counter()
+    staged = workdir / "input"
+    names, skipped = _stage_photos(photos, staged)
+    if len(names) < MIN_REGISTERED:
+        raise InputError(
+            f"{photo_folder}: only {len(names)} usable photo(s) of {len(photos)}; "
+            f"SfM needs at least {MIN_REGISTERED} overlapping photos"
+        )
+    db = workdir / "database.db"
+    n_threads = min(os.cpu_count() or 1, 8)
+    _extract_features(db, staged, names, config, n_threads)
+    t_extract = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    pairing = _match_features(db, workdir, names, config, n_threads)
     t_match = time.perf_counter() - t1
 
     t2 = time.perf_counter()
     opts = pycolmap.IncrementalPipelineOptions()
-    opts.num_threads = ext.num_threads
+    opts.num_threads = n_threads
     opts.min_num_matches = config.min_num_matches
     opts.structure_less_registration_fallback = config.structure_less
     opts.random_seed = config.seed
