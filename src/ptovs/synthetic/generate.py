@@ -680,6 +680,65 @@ def eval_labels(preset: str, seed: int) -> list[dict]:
     return out
 
 
+def _photo(
+    plan: ScenePlan,
+    cfg: Preset,
+    i: int,
+    seed: int,
+    name: str,
+    image_dir: Path,
+    truth_dir: Path,
+    label_dir: Path,
+) -> tuple[dict, list[Billboard], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Render photo `i` of the plan and write it with its truth (and, for an
+    evaluation view, its ISAT label); returns its camera record, its occluders and
+    its sample of surface points (xyz, part, pixel)."""
+    cams, stems, world, queries = plan.cams, plan.stems, plan.world, plan.queries
+    eval_set, test_ids = set(plan.eval_ids), plan.test_ids
+    cam = cams[i]
+    stem = stems[i]
+    app = sample_appearance(_rng(seed, 3, i))
+    is_eval = i in eval_set
+    bbs = (
+        []
+        if is_eval
+        else sample_transients(_rng(seed, 4, i), world, cam, cfg.max_cover)
+    )
+    view = render(world, cam, app, bbs, aa=cfg.aa)
+    jpg = image_dir / f"{stem}.jpg"
+    cv2.imwrite(str(jpg), cv2.cvtColor(view.image, cv2.COLOR_RGB2BGR), _JPEG)
+    _save_npz(
+        truth_dir / f"{stem}.npz",
+        part_id=view.part_id,
+        transient=view.transient,
+        depth=view.depth,
+    )
+    if is_eval:
+        lab = isat_label(
+            view.part_id,
+            queries,
+            f"{stem}.jpg",
+            f"label/{name}",
+            _min_px(cam, 0.002, 12),
+        )
+        _check_label(lab, view.part_id, queries)
+        _write_json(label_dir / f"{stem}.json", lab)
+        shutil.copyfile(jpg, label_dir / f"{stem}.jpg")
+    xyz, part, px = _sample_points(
+        _rng(seed, 5, i), world, cam, view, cfg.points_per_image
+    )
+    rec = {"name": f"{stem}.jpg", "image_id": i + 1, **cam.to_dict()}
+    rec.update(
+        split="test" if i in test_ids else "train",
+        eval=is_eval,
+        appearance=app.to_dict(),
+        hard=app.hard,
+        transients=[b.to_dict() for b in bbs],
+        transient_fraction=float(view.transient.mean()),
+    )
+    return rec, bbs, (xyz, part, px)
+
+
 def generate_scene(
     out: Path,
     preset: str = "tiny",
@@ -717,10 +776,9 @@ def generate_scene(
     image_dir = scene / "dense" / "images"
 
     plan = plan_scene(preset, seed)
-    world, stems, cams, queries = plan.world, plan.stems, plan.cams, plan.queries
-    eval_ids, test_ids, distractor = plan.eval_ids, plan.test_ids, plan.distractor
+    world, cams, queries = plan.world, plan.cams, plan.queries
+    eval_ids, distractor = plan.eval_ids, plan.distractor
     n_img = cfg.n_train + cfg.n_test
-    eval_set = set(eval_ids)
     logger.info(
         "%s: %d parts, queries %s (+ distractor %r), %d eval views; screen: %s",
         name,
@@ -735,52 +793,14 @@ def generate_scene(
     all_bbs: list[list[Billboard]] = []
     pts_xyz, pts_part, pts_src, pts_px = [], [], [], []
     for i in tqdm(range(n_img), desc=f"synth {name}", disable=not progress, unit="img"):
-        cam = cams[i]
-        stem = stems[i]
-        app = sample_appearance(_rng(seed, 3, i))
-        is_eval = i in eval_set
-        bbs = (
-            []
-            if is_eval
-            else sample_transients(_rng(seed, 4, i), world, cam, cfg.max_cover)
-        )
-        view = render(world, cam, app, bbs, aa=cfg.aa)
-        jpg = image_dir / f"{stem}.jpg"
-        cv2.imwrite(str(jpg), cv2.cvtColor(view.image, cv2.COLOR_RGB2BGR), _JPEG)
-        _save_npz(
-            truth_dir / f"{stem}.npz",
-            part_id=view.part_id,
-            transient=view.transient,
-            depth=view.depth,
-        )
-        if is_eval:
-            lab = isat_label(
-                view.part_id,
-                queries,
-                f"{stem}.jpg",
-                f"label/{name}",
-                _min_px(cam, 0.002, 12),
-            )
-            _check_label(lab, view.part_id, queries)
-            _write_json(label_dir / f"{stem}.json", lab)
-            shutil.copyfile(jpg, label_dir / f"{stem}.jpg")
-        xyz, part, px = _sample_points(
-            _rng(seed, 5, i), world, cam, view, cfg.points_per_image
+        rec, bbs, (xyz, part, px) = _photo(
+            plan, cfg, i, seed, name, image_dir, truth_dir, label_dir
         )
         pts_xyz.append(xyz)
         pts_part.append(part)
         pts_src.append(np.full(len(xyz), i))
         pts_px.append(px)
         all_bbs.append(bbs)
-        rec = {"name": f"{stem}.jpg", "image_id": i + 1, **cam.to_dict()}
-        rec.update(
-            split="test" if i in test_ids else "train",
-            eval=is_eval,
-            appearance=app.to_dict(),
-            hard=app.hard,
-            transients=[b.to_dict() for b in bbs],
-            transient_fraction=float(view.transient.mean()),
-        )
         records.append(rec)
 
     xyz = np.concatenate(pts_xyz)
