@@ -29,8 +29,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import subprocess
 import sys
 import time
@@ -39,9 +37,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from reconstruct import _ptovs, _scene  # noqa: E402  (same folder)
-
-ROOT = Path(__file__).resolve().parents[1]
+from common import ROOT, Results, bench_scene, run_ptovs  # noqa: E402  (same folder)
 
 
 def _truth(scene: Path) -> dict:
@@ -57,7 +53,7 @@ def select_part(work: Path, scene: Path, out: Path) -> dict:
     for text, part_ids in truth["query_parts"].items():
         ply = out / f"{text.replace(' ', '_')}.ply"
         try:
-            wall, rss, _ = _ptovs(
+            wall, rss, _ = run_ptovs(
                 work, "select", text, "--data", str(scene), "--out", str(ply)
             )
         except RuntimeError as exc:
@@ -92,7 +88,7 @@ def style_part(work: Path, scene: Path, out: Path) -> dict:
             "regenerate it with `ptovs synth-scene` (deterministic: the trained "
             "stages stay valid; query artifacts are keyed by the vocabulary)"
         )
-    wall, rss, _ = _ptovs(work, "style", "--data", str(scene), "--out", str(out))
+    wall, rss, _ = run_ptovs(work, "style", "--data", str(scene), "--out", str(out))
     rec = json.loads((out / "style.json").read_text())
     res = {
         "true": truth["style"],
@@ -104,7 +100,7 @@ def style_part(work: Path, scene: Path, out: Path) -> dict:
         "style_s": rec["seconds"],
         "wall_s": round(wall, 2),
     }
-    _, _, _ = _ptovs(work, "style", "--data", str(scene), "--vote", "pixel_count",
+    _, _, _ = run_ptovs(work, "style", "--data", str(scene), "--vote", "pixel_count",
                      "--pictures", "0", "--out", str(out.with_name("style_pixel_count")))  # fmt: skip
     pc = json.loads((out.with_name("style_pixel_count") / "style.json").read_text())
     res["pixel_count"] = {"winner": pc["winner"], "correct": pc["winner"] == truth["style"],
@@ -148,7 +144,7 @@ def raw_style_votes(scene: Path, names: list[str]) -> dict:
 def roam_part(work: Path, scene: Path, out: Path) -> dict:
     text = next(iter(_truth(scene)["query_parts"]))
     video = out / "tour.mp4"
-    wall, rss, _ = _ptovs(work, "roam", text, "--data", str(scene), "--out", str(video),
+    wall, rss, _ = run_ptovs(work, "roam", text, "--data", str(scene), "--out", str(video),
                           "--frames", "90", "--size", "320x240")  # fmt: skip
     rec = json.loads(video.with_suffix(".json").read_text())
     res = {"text": text, **{k: rec[k] for k in ("frames", "width", "height", "seconds", "render_fps")},
@@ -161,7 +157,7 @@ def batch_part(root: Path, n: int = 7) -> dict:
     data, work = root / "batch_data", root / "batch_work"
     for seed in range(n):
         if not (data / f"tiny_s{seed}" / "dense").is_dir():
-            _ptovs(
+            run_ptovs(
                 work, "synth-scene", str(data), "--preset", "tiny", "--seed", str(seed)
             )
     t0 = time.perf_counter()
@@ -246,19 +242,12 @@ def main() -> None:
     ap.add_argument("--picture-text", default="Rose Window")
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
-    path = args.work / "bench_apps.json"
-    results = json.loads(path.read_text()) if path.exists() else {}
-    results["machine"] = dict(platform=platform.platform(), cpus=os.cpu_count(),
-                              date=time.strftime("%Y-%m-%d"))  # fmt: skip
-
-    def save():
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(results, indent=1))
-        os.replace(tmp, path)
+    results = Results(args.work / "bench_apps.json")
+    save = results.save
 
     work = args.work / "default"
     for seed in args.seeds if {"select", "style", "roam"} & set(args.parts) else []:
-        scene = _scene(args.data, seed)
+        scene = bench_scene(args.data, seed)
         out = args.work / "apps" / scene.name
         for part, fn in (
             ("select", select_part),
@@ -269,7 +258,7 @@ def main() -> None:
                 results[f"{part}_s{seed}"] = fn(work, scene, out / part)
                 save()
     if "pictures" in args.parts:
-        scene = _scene(args.data, args.picture_seed)
+        scene = bench_scene(args.data, args.picture_seed)
         results["pictures"] = pictures_part(
             work, scene, args.picture_text, ROOT / "docs" / "img"
         )

@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -33,9 +31,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from reconstruct import _ptovs, _scene  # noqa: E402  (same folder)
+from common import ROOT, Results, bench_scene, run_ptovs  # noqa: E402  (same folder)
 
-ROOT = Path(__file__).resolve().parents[1]
 STAGES = ("render-appearances", "extract-features", "uncertainty")
 
 
@@ -47,11 +44,11 @@ def run_stages(
     work: Path, scene: Path, recon_sets: list[str], force: bool = False
 ) -> dict:
     group = [f"--set=reconstruct.{s}" for s in recon_sets]
-    wall, rss, out = _ptovs(work, *group, "reconstruct", "--data", str(scene))
+    wall, rss, out = run_ptovs(work, *group, "reconstruct", "--data", str(scene))
     res: dict = {"reconstruct": {"wall_s": round(wall, 1), "peak_rss_mb": round(rss)}}
     for stage in STAGES:
         extra = ["--force"] if force else []
-        wall, rss, out = _ptovs(work, *group, stage, "--data", str(scene), *extra)
+        wall, rss, out = run_ptovs(work, *group, stage, "--data", str(scene), *extra)
         res[stage] = {
             "wall_s": round(wall, 1),
             "peak_rss_mb": round(rss),
@@ -172,24 +169,16 @@ def main() -> None:
     )
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
-    out_path = args.work / "bench_extract.json"
-    results = json.loads(out_path.read_text()) if out_path.exists() else {}
-    results["machine"] = dict(
-        platform=platform.platform(),
-        cpus=os.cpu_count(),
-        date=time.strftime("%Y-%m-%d"),
-    )
-
-    def save():
-        out_path.write_text(json.dumps(results, indent=1))
+    results = Results(args.work / "bench_extract.json")
+    save = results.save
 
     if "graph" in args.parts:
-        results["graph"] = graph_timing(_scene(args.data, args.seeds[0]))
+        results["graph"] = graph_timing(bench_scene(args.data, args.seeds[0]))
         save()
         print("graph:", results["graph"], flush=True)
     if "bench" in args.parts:
         for seed in args.seeds:
-            scene = _scene(args.data, seed)
+            scene = bench_scene(args.data, seed)
             res = run_stages(args.work / "default", scene, [], args.force)
             res.update(evaluate(res, scene))
             results[f"bench_s{seed}"] = res

@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -27,9 +25,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from reconstruct import _scene  # noqa: E402  (same folder)
-
-ROOT = Path(__file__).resolve().parents[1]
+from common import ROOT, Results, bench_scene  # noqa: E402  (same folder)
 
 
 def _chain(work: Path, scene: Path, variant: str, extra: dict | None = None):
@@ -165,22 +161,12 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=ROOT / "work" / "bench")
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
-    out_path = args.work / "bench_query.json"
-    results = json.loads(out_path.read_text()) if out_path.exists() else {}
-    results["machine"] = dict(
-        platform=platform.platform(),
-        cpus=os.cpu_count(),
-        date=time.strftime("%Y-%m-%d"),
-    )
-
-    def save():
-        tmp = out_path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(results, indent=1))
-        os.replace(tmp, out_path)
+    results = Results(args.work / "bench_query.json")
+    save = results.save
 
     work = args.work / "default"
     for seed in args.seeds:
-        scene = _scene(args.data, seed)
+        scene = bench_scene(args.data, seed)
         if "decode" in args.parts:
             results[f"decode_s{seed}"] = decode_part(work, scene)
             save()

@@ -24,63 +24,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _ptovs(work: Path, *args: str) -> tuple[float, float, str]:
-    """Run `ptovs` in a fresh process; (wall s, peak RSS MB of that process, stdout).
-
-    The peak RSS comes from GNU time when present: `wait4`'s ru_maxrss would also
-    count the pages the child shares with this (large) benchmark process between
-    fork and exec.
-    """
-    cmd = [sys.executable, "-m", "ptovs", "-q", "--work-dir", str(work), *args]
-    gnu_time = shutil.which("time") or (
-        "/usr/bin/time" if Path("/usr/bin/time").exists() else None
-    )
-    full = [gnu_time, "-f", "PTOVS_PEAK_KB %M", *cmd] if gnu_time else cmd
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(
-        full, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-    )
-    out, err = proc.communicate()
-    wall = time.perf_counter() - t0
-    if proc.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed:\n{err[-3000:]}")
-    peak = [ln for ln in err.splitlines() if ln.startswith("PTOVS_PEAK_KB ")]
-    rss = float(peak[-1].split()[1]) / 1024.0 if peak else float("nan")
-    return wall, rss, out
-
-
-def _scene(data: Path, seed: int) -> Path:
-    scene = data / f"bench_s{seed}"
-    if not (scene / "dense").is_dir():
-        subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "ptovs",
-                "-q",
-                "synth-scene",
-                str(data),
-                "--preset",
-                "bench",
-                "--seed",
-                str(seed),
-            ],
-            check=True,
-        )
-    return scene
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import ROOT, Results, bench_scene, run_ptovs  # noqa: E402  (same folder)
 
 
 def evaluate(art_path: Path, scene_dir: Path, n_transfer: int = 8) -> dict:
@@ -163,7 +115,7 @@ def run_config(work: Path, scene: Path, sets: list[str]) -> dict:
     args = ["reconstruct", "--data", str(scene)]
     for s in sets:
         args += ["--set", s]
-    wall, rss, stdout = _ptovs(work, *args)
+    wall, rss, stdout = run_ptovs(work, *args)
     art = Path(stdout.strip().splitlines()[-1].split(": ", 1)[1])
     res = evaluate(art, scene)
     res.update(wall_s=round(wall, 1), peak_rss_mb=round(rss), sets=sets)
@@ -180,7 +132,7 @@ def sfm_part(work: Path, scene: Path) -> dict:
         shutil.rmtree(photos.parent)
     shutil.copytree(scene / "dense" / "images", photos)
     t0 = time.perf_counter()
-    wall, rss, _ = _ptovs(work, "status", "--data", str(photos.parent))
+    wall, rss, _ = run_ptovs(work, "status", "--data", str(photos.parent))
     sfm_scene = next((work / scene.name).glob("sfm/*/sparse")).parent
     posed = load_scene(sfm_scene)
     truth = {
@@ -217,7 +169,7 @@ def sfm_part(work: Path, scene: Path) -> dict:
         radius=radius,
     )
     # train on the SfM poses; PSNR on its own held-out split (no truth alignment)
-    wall, rss, stdout = _ptovs(work, "reconstruct", "--data", str(photos.parent))
+    wall, rss, stdout = run_ptovs(work, "reconstruct", "--data", str(photos.parent))
     art = Path(stdout.strip().splitlines()[-1].split(": ", 1)[1])
     from ptovs.artifacts import Artifact, read_json_dataset
 
@@ -261,19 +213,11 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=ROOT / "work" / "bench")
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
-    out_path = args.work / "bench_reconstruct.json"
-    results = json.loads(out_path.read_text()) if out_path.exists() else {}
-    results["machine"] = dict(
-        platform=platform.platform(),
-        cpus=os.cpu_count(),
-        date=time.strftime("%Y-%m-%d"),
-    )
-
-    def save():
-        out_path.write_text(json.dumps(results, indent=1))
+    results = Results(args.work / "bench_reconstruct.json")
+    save = results.save
 
     for seed in args.seeds:
-        scene = _scene(args.data, seed)
+        scene = bench_scene(args.data, seed)
         if "default" in args.parts:
             r = run_config(args.work / "default", scene, [])
             results[f"default_s{seed}"] = r
@@ -293,7 +237,7 @@ def main() -> None:
                 f"{r['transfer_psnr']:.2f} | – | {r['gaussians']} | {r['peak_rss_mb']} |",
                 flush=True,
             )
-    seed0 = _scene(args.data, args.seeds[0])
+    seed0 = bench_scene(args.data, args.seeds[0])
     if "budgets" in args.parts:
         for it in args.budgets:
             r = run_config(args.work / "budgets", seed0, [f"iterations={it}"])

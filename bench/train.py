@@ -21,8 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -30,9 +28,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from reconstruct import _ptovs, _scene  # noqa: E402  (same folder)
-
-ROOT = Path(__file__).resolve().parents[1]
+from common import ROOT, Results, bench_scene, run_ptovs  # noqa: E402  (same folder)
 
 
 def step_timing(n: int = 100_000, size: int = 256, reps: int = 20) -> dict:
@@ -117,12 +113,12 @@ def bench_seed(
     res: dict = {}
     extra = ["--force"] if force else []
     for stage in ("train-ae", "train-male"):
-        wall, rss, out = _ptovs(work, stage, "--data", str(scene), *extra)
+        wall, rss, out = run_ptovs(work, stage, "--data", str(scene), *extra)
         res[stage] = {"wall_s": round(wall, 1), "peak_rss_mb": round(rss)}
         res[stage]["metrics"] = _metrics(_path(out))
         print(stage, json.dumps(res[stage]), flush=True)
     for variant in ("langsplat", "langsplat-wild") if variants else ():
-        wall, rss, out = _ptovs(
+        wall, rss, out = run_ptovs(
             work, "train", "--variant", variant, "--data", str(scene)
         )
         stages = {}
@@ -141,7 +137,7 @@ def bench_seed(
     if not fixed30k:
         return res
     fixed = ["--set", "stop=fixed", "--set", "iterations=30000"]
-    wall, rss, out = _ptovs(work, "train-male", "--data", str(scene), *fixed, *extra)
+    wall, rss, out = run_ptovs(work, "train-male", "--data", str(scene), *fixed, *extra)
     res["train-male-fixed30k"] = {
         "wall_s": round(wall, 1),
         "peak_rss_mb": round(rss),
@@ -176,24 +172,16 @@ def main() -> None:
     )
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
-    out_path = args.work / "bench_train.json"
-    results = json.loads(out_path.read_text()) if out_path.exists() else {}
     # each seed's entry is replaced as a whole, others kept
-    results["machine"] = dict(
-        platform=platform.platform(),
-        cpus=os.cpu_count(),
-        date=time.strftime("%Y-%m-%d"),
-    )
-
-    def save():
-        out_path.write_text(json.dumps(results, indent=1))
+    results = Results(args.work / "bench_train.json")
+    save = results.save
 
     if "step" in args.parts:
         results["step"] = step_timing()
         save()
     if "bench" in args.parts:
         for seed in args.seeds:
-            scene = _scene(args.data, seed)
+            scene = bench_scene(args.data, seed)
             results[f"bench_s{seed}"] = bench_seed(
                 args.work / "default",
                 scene,

@@ -1,0 +1,92 @@
+"""What the bench scripts share: the repository root, the bench scenes, `ptovs` in a
+fresh process, and the results file every script keeps.
+
+    from common import ROOT, Results, bench_scene, run_ptovs   # (bench/ is on sys.path)
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def machine() -> dict:
+    """Where and when a figure was measured."""
+    return dict(
+        platform=platform.platform(),
+        cpus=os.cpu_count(),
+        date=time.strftime("%Y-%m-%d"),
+    )
+
+
+class Results(dict):
+    """A bench script's results file: what an earlier run left is kept (so one part
+    can be rerun alone), stamped with this machine and date, saved atomically."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        super().__init__(
+            json.loads(self.path.read_text()) if self.path.exists() else {}
+        )
+        self["machine"] = machine()
+
+    def save(self) -> None:
+        tmp = self.path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(self, indent=1))
+        os.replace(tmp, self.path)
+
+
+def run_ptovs(work: Path, *args: str) -> tuple[float, float, str]:
+    """Run `ptovs` in a fresh process; (wall s, peak RSS MB of that process, stdout).
+
+    The peak RSS comes from GNU time when present: `wait4`'s ru_maxrss would also
+    count the pages the child shares with this (large) benchmark process between
+    fork and exec.
+    """
+    cmd = [sys.executable, "-m", "ptovs", "-q", "--work-dir", str(work), *args]
+    gnu_time = shutil.which("time") or (
+        "/usr/bin/time" if Path("/usr/bin/time").exists() else None
+    )
+    full = [gnu_time, "-f", "PTOVS_PEAK_KB %M", *cmd] if gnu_time else cmd
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(
+        full, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    out, err = proc.communicate()
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{err[-3000:]}")
+    peak = [ln for ln in err.splitlines() if ln.startswith("PTOVS_PEAK_KB ")]
+    rss = float(peak[-1].split()[1]) / 1024.0 if peak else float("nan")
+    return wall, rss, out
+
+
+def bench_scene(data: Path, seed: int) -> Path:
+    """The `bench` preset scene of `seed` under `data`, generated on first use."""
+    scene = data / f"bench_s{seed}"
+    if not (scene / "dense").is_dir():
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "ptovs",
+                "-q",
+                "synth-scene",
+                str(data),
+                "--preset",
+                "bench",
+                "--seed",
+                str(seed),
+            ],
+            check=True,
+        )
+    return scene
