@@ -16,20 +16,11 @@ from pathlib import Path
 
 import click
 
-from ptovs.stage import SFM, RunContext, pose_photos, scene_options, scene_source
+from ptovs.stage import SFM, RunContext, chain_options, pose_photos, scene_source
 
 
 @click.command(name=SFM, help=__doc__)
-@scene_options
-@click.option(
-    "--set",
-    "sets",
-    multiple=True,
-    metavar="KEY=VALUE",
-    help="Override an [sfm] config value (repeatable), e.g. pairing=exhaustive "
-    "(or sfm.pairing=exhaustive).",
-)
-@click.option("--force", is_flag=True, help="Run SfM again even if it is cached.")
+@chain_options(variant=None, force="Run SfM again even if it is cached.")
 @click.pass_obj
 def command(
     obj: RunContext,
