@@ -180,7 +180,7 @@ def status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:
     name, folder, photos = scene_source(scene_name, data)
     sfm_line = None
     if photos is not None:
-        key, state, _ = pose_photos(obj, name, photos, run=False)
+        key, state, posed = pose_photos(obj, name, photos, run=False)
         if state != "done":
             click.echo(f"scene {name}: {photos} (unposed photos)")
             click.echo(
@@ -188,7 +188,8 @@ def status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:
             )
             return
         sfm_line = f"  {SFM:<20} {key[:12]}  done     {photos}"
-    ref = resolve_scene(obj, scene_name, data, run_sfm=False)
+        scene_name, data = name, posed  # the posed scene the sfm stage left
+    ref = resolve_scene(obj, scene_name, data)
     scene = ref.load()
     chain = Chain(obj, ref)
     click.echo(f"scene {ref.name}: {ref.data}")

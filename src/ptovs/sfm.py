@@ -468,6 +468,20 @@ def _photos_key(
     return artifact_key(NAME, VERSION, dataclasses.asdict(config), {"photos": digest})
 
 
+def sfm_location(
+    photo_folder: Path, scene: str, work_dir: Path, config: SfmConfig
+) -> tuple[list[Path], str, Store, Path]:
+    """(the photos, the sfm key, the store, the posed scene folder
+    `<work>/<scene>/sfm/<key12>/`) of a photo folder; nothing is read but the
+    photos' fingerprints."""
+    photos = list_photos(photo_folder)
+    key = _photos_key(
+        photos, photo_folder, Path(work_dir) / scene / ".fingerprints.json", config
+    )
+    store = Store(work_dir)
+    return photos, key, store, store.path(scene, NAME, key).with_suffix("")
+
+
 def sfm_state(
     photo_folder: Path, scene: str, work_dir: Path, config: SfmConfig
 ) -> tuple[str, str, Path]:
@@ -477,12 +491,7 @@ def sfm_state(
     undistorted scene folder is not: `ptovs sfm` rebuilds it in seconds) or
     "missing".
     """
-    photos = list_photos(photo_folder)
-    key = _photos_key(
-        photos, photo_folder, Path(work_dir) / scene / ".fingerprints.json", config
-    )
-    store = Store(work_dir)
-    out = store.path(scene, NAME, key).with_suffix("")  # <work>/<scene>/sfm/<key12>/
+    _, key, store, out = sfm_location(photo_folder, scene, work_dir, config)
     art = store.lookup(scene, NAME, key)
     if art is None:
         return key, "missing", out
@@ -503,12 +512,7 @@ def posed_scene(
     or always with `force`)."""
     from ptovs.artifacts import provenance
 
-    photos = list_photos(photo_folder)
-    key = _photos_key(
-        photos, photo_folder, Path(work_dir) / scene / ".fingerprints.json", config
-    )
-    store = Store(work_dir)
-    out = store.path(scene, NAME, key).with_suffix("")  # <work>/<scene>/sfm/<key12>/
+    photos, key, store, out = sfm_location(photo_folder, scene, work_dir, config)
     with store.lock(scene, NAME, key):
         art = store.lookup(scene, NAME, key)
         if art is not None and force:

@@ -574,12 +574,13 @@ def pose_photos(
 ) -> tuple[str, str, Path]:
     """(key, state, posed scene folder) of the `sfm` stage for a photo folder:
     run (cached, under its lock) if `run`, else only looked up (`ptovs status`)."""
-    from ptovs.sfm import SfmConfig, posed_scene, sfm_state
+    from ptovs.sfm import SfmConfig, posed_scene, sfm_location, sfm_state
 
     config = build_config(SfmConfig, ctx.section(SFM), SFM)
-    if run:
-        posed_scene(photos, scene_name, ctx.work_dir, config, force=force)
-    return sfm_state(photos, scene_name, ctx.work_dir, config)
+    if not run:
+        return sfm_state(photos, scene_name, ctx.work_dir, config)
+    out = posed_scene(photos, scene_name, ctx.work_dir, config, force=force)
+    return sfm_location(photos, scene_name, ctx.work_dir, config)[1], "done", out
 
 
 def resolve_scene(
@@ -587,20 +588,12 @@ def resolve_scene(
     scene_name: str | None,
     data: Path | None,
     sets: Iterable[str] = (),
-    *,
-    run_sfm: bool = True,
 ) -> SceneRef:
     """The scene a command works on. A folder of unposed photos is posed first by
-    the `sfm` stage (cached), unless `run_sfm` is False: then a missing SfM is an
-    error naming `ptovs sfm`."""
+    the `sfm` stage (cached)."""
     scene_name, data, photos = scene_source(scene_name, data)
     if photos is not None:  # unposed photos: SfM first (cached), then a COLMAP scene
-        key, state, data = pose_photos(ctx, scene_name, photos, run=run_sfm)
-        if state != "done":
-            raise MissingInputError(
-                f"no {SFM} for {scene_name} (key {key[:12]}, {state}); "
-                f"run: ptovs sfm --data {photos}"
-            )
+        data = pose_photos(ctx, scene_name, photos, run=True)[2]
     section = ctx.section("scene", sets)
     config = build_config(SceneConfig, section, "scene")
     return SceneRef(scene_name, Path(data), config, ctx.work_dir)
