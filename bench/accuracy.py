@@ -30,6 +30,8 @@ at a time on two cores, one thread each), the instrument measures, on every
   no-multi-appearance, no-tum-aum, no-tum, no-aum, no-bg-filter, imglvlmax,
   pixmax, pixavg, pixweighted   Table 3 rows 1 and 6-13 (ptovs.variants)
   budget-300, budget-3k         train-male at two fixed iteration budgets
+  lift                the training-free lift (`--variant lift`): the full method's
+                      inputs, each Gaussian's code its weighted mean target code
 
 A finished seed's pairs go to <work>/results/<scene>.json (atomically); a rerun
 skips the variants a seed already has, and an interrupted seed resumes from the
@@ -63,6 +65,7 @@ VERSION = 1  # bump when what a seed's results mean changes
 # order a seed computes them in (the full method's chain first: most reuse it)
 CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
     "male": ("male", {}),
+    "lift": ("lift", {}),
     **{
         f"slot-{a}": ("male", {"query": [f'appearances=["{a}"]']})
         for a in ("orig", "nov1", "nov2", "nov3")

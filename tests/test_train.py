@@ -17,7 +17,9 @@ from ptovs.field.language import load_codes
 from ptovs.nets.autoencoder import LanguageAE, load_autoencoder
 from ptovs.raster import blend_weights, render
 from ptovs.stages import train_ae as tae
-from test_raster import random_scene
+from test_raster import make_camera, random_scene, stack_at
+
+F64 = torch.float64
 
 
 @pytest.fixture(scope="module")
@@ -439,6 +441,118 @@ def test_killed_train_ae_resumes_to_the_same_codes(
     with _art(work, "train-ae") as art:
         for n in art.names():
             np.testing.assert_allclose(art[n]["code_orig"], resumed[n], atol=1e-6)
+
+
+# ---------------------------------------------------------------------- lift --
+
+
+def _two_view_lift_case():
+    """Three Gaussians, two views, one level and two slots (hand-built): A is seen
+    by both views, B only by view 0 (inside its one segment), C by neither."""
+    pts = [[0.5, 0.0, 3.0], [-1.0, 0.1, 3.0], [0.0, 0.0, -2.0]]
+    g64 = stack_at(pts, scale=0.15, opacity=0.8)
+    w, h = 24, 18
+    cams = [make_camera(w, h, F64), make_camera(w, h, F64)]
+    cams[1].cam_from_world[0, 3] = -1.5  # camera 1 sits at x = +1.5
+    rng = np.random.default_rng(11)
+    views = []
+    for v in range(2):
+        segs, codes = [], []
+        for _ in range(2):  # slots
+            seg = (
+                np.zeros((1, h, w), np.int16)  # view 0: one segment everywhere
+                if v == 0
+                else rng.integers(-1, 3, (1, h, w)).astype(np.int16)
+            )
+            c = rng.normal(size=(3, 3)).astype(np.float32)
+            segs.append(seg)
+            codes.append(c / np.linalg.norm(c, axis=1, keepdims=True))
+        u_t = rng.random((h, w)).astype(np.float32) * 0.9
+        u_a = rng.random((h, w)).astype(np.float32) * 0.9
+        views.append((segs, codes, u_t, u_a))
+    return g64, cams, views
+
+
+def test_lift_matches_float64_reference():
+    g64, cams, views = _two_view_lift_case()
+    g32 = type(g64)(*(t.float() for t in (g64.means, g64.quats, g64.scales)),
+                    g64.opacities.float())  # fmt: skip
+    store = lang.ViewStore(1 << 30, None)
+    num = torch.zeros(3, 2, 3, dtype=F64)  # [P, slot, xyz]
+    for cam, (segs, codes, u_t, u_a) in zip(cams, views, strict=True):
+        cam32 = type(cam)(cam.cam_from_world.float(), cam.K.float(), cam.width,
+                          cam.height)  # fmt: skip
+        store.add(lang.prepare_view(blend_weights(g32, cam32), segs, codes, u_t, u_a))
+        # W from the float64 torch oracle: splat the identity, one channel a Gaussian
+        wmat = render(g64, cam, torch.eye(3, dtype=F64), background=None,
+                      backend="torch", depth=False).image.reshape(-1, 3)  # fmt: skip
+        m = ((1 - u_t) * (1 - u_a)).ravel()
+        for a, (seg, code) in enumerate(zip(segs, codes, strict=True)):
+            s = seg[0].ravel().astype(np.int64)
+            # the stage keeps targets and weights in float16 (ViewData): round alike
+            wgt = ((s >= 0) * m).astype(np.float16).astype(np.float64)
+            gt = code.astype(np.float16).astype(np.float64)[np.maximum(s, 0)]
+            num[:, a] += wmat.T @ torch.from_numpy(gt * wgt[:, None])
+    ref = num / num.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    ref[num.norm(dim=-1) == 0] = 0
+    f, metrics, hist = lang.train_male(store, 6, lang.MaleConfig(mode="lift"))
+    got = f.reshape(3, 2, 3).double()
+    torch.testing.assert_close(got, ref, rtol=0, atol=1e-6)
+    assert metrics["iterations"] == 0 and hist["epoch_loss"] == []
+    # B is seen by view 0 alone, inside its single segment: it gets that code
+    for a in range(2):
+        np.testing.assert_allclose(got[1, a].numpy(), views[0][1][a][0], atol=1e-3)
+    assert (got[2] == 0).all()  # C is behind both cameras: no view, zero code
+    assert torch.isfinite(got).all()
+
+
+def test_lift_hard_cases_are_finite():
+    """No segment anywhere, saturated uncertainty (weight 0 everywhere) and large
+    codes: the lift stays finite and leaves unreached Gaussians at zero; codes past
+    float16 (the targets' storage) are refused, not turned into inf."""
+    g, cam, bw, segs, codes, _, _ = _toy_view(seed=4)
+    empty = [np.full_like(s, -1) for s in segs]
+    ones = np.ones((18, 24), np.float32)
+    for args in ((empty, codes, None, None), (segs, codes, ones, None),
+                 (segs, [c * 1e4 for c in codes], None, None)):  # fmt: skip
+        store = lang.ViewStore(1 << 30, None)
+        store.add(lang.prepare_view(bw, *args))
+        f, _, _ = lang.train_male(store, 18, lang.MaleConfig(mode="lift"))
+        assert torch.isfinite(f).all()
+        norms = f.reshape(len(g), -1, 3).norm(dim=-1)
+        assert (((norms - 1).abs() < 1e-5) | (norms == 0)).all()
+    assert (f.reshape(len(g), -1, 3).norm(dim=-1) > 0).any()  # the huge codes lift
+    with pytest.raises(FloatingPointError, match="float16"):  # would overflow: refused
+        lang.prepare_view(bw, segs, [c * 1e30 for c in codes], None, None)
+    with pytest.raises(ValueError, match="mode"):
+        lang.train_male(store, 18, lang.MaleConfig(mode="nope"))
+
+
+def test_lift_variant_on_tiny(trained):
+    """`--variant lift`: the full method's train-ae reused, train-male without an
+    optimiser; finite codes, unit 3-chunks where seen, same layout as the default."""
+    work, data, out = trained
+    lifted = run_cli(work, "train", "--variant", "lift", "--data", str(data))
+    assert "train-ae             cached" in lifted, lifted
+    # same key (file name) as the default chain's AE; `out` ran in another work dir
+    assert _path_of(lifted, "train-ae").name == _path_of(out, "train-ae").name
+    path = _path_of(lifted, "train-male")
+    male_path = path.parent / _path_of(out, "train-male").name
+    assert path != male_path and male_path.is_file()
+    with Artifact(path) as art, Artifact(male_path) as male:
+        assert art.config["mode"] == "lift"
+        metrics = read_json_dataset(art.root()["metrics_json"])
+        assert metrics["iterations"] == 0 and metrics["stop"].startswith("lift")
+        codes, meta = load_codes(art)
+        ref, ref_meta = load_codes(male)
+        assert meta == ref_meta and codes.shape == ref.shape
+        assert np.isfinite(art.root()["codes"]).all()
+        seen = np.unpackbits(art.root()["seen_bits"], count=len(codes)).astype(bool)
+        norms = codes[torch.from_numpy(seen)].norm(dim=-1)
+        assert ((norms - 1).abs() < 2e-3).float().mean() > 0.99
+        # the lift is the optimiser's starting point: trained codes stay close to it
+        cos = (codes * ref).sum(-1)[torch.from_numpy(seen)]
+        assert float(cos.mean()) > 0.5
 
 
 # ------------------------------------------------------------------ variants --

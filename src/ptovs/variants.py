@@ -5,6 +5,9 @@
   no uncertainty) on plain-3DGS geometry (`reconstruct.wild = false`).
 - `langsplat-wild`: the same recipe on the in-the-wild geometry, so that geometry
   and language effects can be told apart.
+- `lift`: the full method's inputs, but train-male without an optimiser: each
+  Gaussian's code is its blend- and uncertainty-weighted mean target code over the
+  train views (`train-male.mode = "lift"`).
 
 The LangSplat recipes extract features of the original photos only
 (`extract-features.images = "orig"`), which depend on the photos alone: both
@@ -32,6 +35,8 @@ VARIANTS: dict[str, dict[str, list[str]]] = {
         "train-ae": ["weighting=none", "tau_u=1.0"],
         "train-male": ["appearances=orig", "use_ut=false", "use_ua=false"],
     },
+    # the training-free lift: each Gaussian's code is its weighted mean target code
+    "lift": {"train-male": ["mode=lift"]},
     # Table 3 ablations
     "no-multi-appearance": {"train-male": ["appearances=orig"]},  # row 1
     "no-uncertainty-ae": {"train-ae": ["weighting=none"]},  # row 3

@@ -136,6 +136,11 @@ def prepare_view(
     )
     if not np.isfinite(table).all():
         raise FloatingPointError("train-ae codes are not finite")
+    if np.abs(table).max() > np.finfo(np.float16).max:  # targets are kept in float16
+        raise FloatingPointError(
+            f"train-ae codes reach {np.abs(table).max():.3g}, beyond float16; the "
+            "autoencoder's codes are unit vectors: rerun train-ae"
+        )
     idx = np.empty((hw, n_lv, n_app), np.int64)
     for a, seg in enumerate(segs):
         s = seg.reshape(n_lv, -1).astype(np.int64)
@@ -253,6 +258,7 @@ class MaleConfig:
     seed: int = 0
     checkpoint_every: int = 1000
     init: str = "data"
+    mode: str = "optimise"
 
 
 def train_step(
@@ -304,9 +310,12 @@ def train_step(
 
 @torch.no_grad()
 def data_init(store: ViewStore, n_channels: int) -> Tensor:
-    """Each Gaussian's mask- and blend-weighted mean target code, unit length.
+    """Each Gaussian's mask- and blend-weighted mean target code, unit length: the
+    training-free lift (`mode = "lift"`) and the optimiser's start (`init = "data"`).
 
-    Σ_v W_vᵀ (m ⊙ G) / Σ_v W_vᵀ m per 3-chunk, normalised; Gaussians no weighted
+    Σ_v W_vᵀ (m ⊙ G) / Σ_v W_vᵀ m per 3-chunk, normalised (the positive denominator
+    drops out of the normalisation, so only the numerator is formed); m carries the
+    (1 − U_A)(1 − U_T) weights and the segment-validity mask. Gaussians no weighted
     pixel reaches stay zero. One sparse product per view.
     """
     hw, n_lv, n_app, n = store[0].shape
@@ -350,6 +359,20 @@ def train_male(
     if n_views == 0:
         raise ValueError("train-male: no training views")
     hw, n_lv, n_app, n = store[0].shape
+    if config.mode == "lift":
+        t0 = time.perf_counter()
+        f = data_init(store, n_channels)
+        seconds = time.perf_counter() - t0
+        metrics = {
+            "iterations": 0,
+            "epochs": 0.0,
+            "stop": "lift: blend-weighted mean target code per Gaussian, no optimiser",
+            "train_seconds": round(seconds, 2),
+            "ms_per_iteration": 0.0,
+        }
+        return f, metrics, {"epoch_loss": [], "epoch_seconds": []}
+    if config.mode != "optimise":
+        raise ValueError(f"mode must be 'optimise' or 'lift', not {config.mode!r}")
     f0 = data_init(store, n_channels) if config.init == "data" else None
     f = torch.zeros(n, n_channels) if f0 is None else f0
     f.requires_grad_(True)

@@ -18,6 +18,12 @@ Rendering: `renderer = "sparse"` (default) builds each view's blend weights W_v
 once (kept in RAM up to `cache_mb`, spilled to memory-mapped files beyond it), so a
 step is W_v · normalize(f) and W_vᵀ · g; `"raster"` rasterises every step.
 
+Lift (`mode = "lift"`, `--variant lift`): no optimisation; each Gaussian's code per
+level and slot is its blend- and mask-weighted mean target code over the train views,
+normalize(Σ_v W_vᵀ (m_v ⊙ G_v)) with the same weights m as the loss (so U_T and U_A
+apply where `use_ut` / `use_ua` say). One sparse product per view, seconds instead of
+minutes; it is also the optimiser's starting point (`init = "data"`).
+
 Stopping: up to `iterations` (30k, the paper's); with `stop = "plateau"` (default)
 training ends once the epoch-mean loss (one pass over all views) has stayed above
 (1 − `stop_rel`) × its best for `stop_patience` epochs. Checkpoints every
@@ -70,6 +76,12 @@ class Config:
     appearances: Literal["all", "orig"] = "all"
     """Slots trained: the original and every novel render ("all"), or the original
     only ("orig": LangSplat's single-appearance field)."""
+    mode: Literal["optimise", "lift"] = "optimise"
+    """How codes are fitted. "optimise": Adam on the loss (the paper); "lift": no
+    training, each
+    Gaussian's code is its blend- and mask-weighted mean target code over the
+    train views (normalize(Σ_v W_vᵀ (m ⊙ G_v)), the optimiser's data init), in
+    one sparse pass (`--variant lift`)."""
     loss_variant: Literal["paper", "code"] = "paper"
     use_ut: bool = True
     """Weight by (1 − U_T); off = factor 1 (Table 3 ablations)."""
