@@ -506,6 +506,26 @@ def test_lift_matches_float64_reference():
     assert torch.isfinite(got).all()
 
 
+def test_feature_lift_sums_match_a_dense_reference():
+    """Σ_x W[x, k] m[x, ℓ, a] F_a[seg_a[ℓ, x]] per Gaussian, against dense float64."""
+    g, cam, bw, segs, _, _, _ = _toy_view(n=50, seed=6)
+    rng = np.random.default_rng(6)
+    feats = [rng.normal(size=(10, 8)).astype(np.float32) for _ in segs]
+    u_t = rng.random((18, 24)).astype(np.float32)
+    valid = np.stack([s.reshape(len(s), -1).T >= 0 for s in segs], axis=-1)
+    m = lang.mask_weights(valid, u_t, None)
+    got = lang.feature_lift_sums(bw.csr()[1], segs, feats, m)
+    wmat = bw.W.to_dense().double()  # [HW, P]
+    for a, (seg, f) in enumerate(zip(segs, feats, strict=True)):
+        for lv in range(seg.shape[0]):
+            s = seg[lv].ravel().astype(np.int64)
+            per_px = np.where((s >= 0)[:, None], f.astype(np.float64)[s], 0.0)
+            ref = wmat.T @ torch.from_numpy(per_px * m[:, lv, a, None])
+            torch.testing.assert_close(
+                got[:, lv, a].double(), ref, rtol=1e-5, atol=1e-5
+            )
+
+
 def test_lift_hard_cases_are_finite():
     """No segment anywhere, saturated uncertainty (weight 0 everywhere) and large
     codes: the lift stays finite and leaves unreached Gaussians at zero; codes past
@@ -553,6 +573,14 @@ def test_lift_variant_on_tiny(trained):
         # the lift is the optimiser's starting point: trained codes stay close to it
         cos = (codes * ref).sum(-1)[torch.from_numpy(seen)]
         assert float(cos.mean()) > 0.5
+    feat = run_cli(work, "train", "--variant", "lift-features", "--data", str(data))
+    with Artifact(_path_of(feat, "train-male")) as art:
+        assert art.config["mode"] == "lift-features"
+        codes, meta = load_codes(art)
+        assert meta == ref_meta and np.isfinite(art.root()["codes"]).all()
+        seen = np.unpackbits(art.root()["seen_bits"], count=len(codes)).astype(bool)
+        norms = codes[torch.from_numpy(seen)].norm(dim=-1)  # AE codes lie on S²
+        assert ((norms - 1).abs() < 2e-3).float().mean() > 0.99
 
 
 # ------------------------------------------------------------------ variants --

@@ -37,9 +37,14 @@ VARIANTS: dict[str, dict[str, list[str]]] = {
     },
     # the training-free lift: each Gaussian's code is its weighted mean target code
     "lift": {"train-male": ["mode=lift"]},
+    # the same over the 512-d segment features, then encoded by the AE
+    "lift-features": {"train-male": ["mode=lift-features"]},
     # Table 3 ablations
     "no-multi-appearance": {"train-male": ["appearances=orig"]},  # row 1
     "no-uncertainty-ae": {"train-ae": ["weighting=none"]},  # row 3
+    # the authors' code's AE weighting: p·D(E(x)) against p·x, so the encoder is
+    # trained on the unweighted features it later encodes (PAPER_SPEC.md §6 caveat)
+    "ae-loss-only": {"train-ae": ["weighting=loss_only"]},
     "tau-0.85": {"train-ae": ["tau_u=0.85"]},  # row 4
     "tau-0.95": {"train-ae": ["tau_u=0.95"]},  # row 5
     "no-tau-u": {"train-ae": ["tau_u=1.0"]},

@@ -47,6 +47,7 @@ from ptovs.raster import (
 log = logging.getLogger(__name__)
 
 NORM_EPS = 1e-9  # the authors' x / (‖x‖ + 1e-9)
+DENSE_LIFT_CELLS = 1 << 25  # Gaussian × segment cells summed by bincount (256 MB)
 CODE_DIM = 3
 
 
@@ -114,6 +115,92 @@ def slot_scale(hw: int, n_levels: int, n_apps: int, loss_variant: str) -> Tensor
     return scale.reshape(-1)
 
 
+def mask_weights(
+    valid: np.ndarray,  # [HW, L, A] bool: a segment of slot a covers the pixel
+    u_t: np.ndarray | None,
+    u_a: np.ndarray | None,
+    loss_variant: str = "paper",
+) -> np.ndarray:
+    """m [HW, L, A] float32: v_a (1 − U_A)(1 − U_T), or the code's masks (module doc)."""
+    hw = valid.shape[0]
+    one = np.ones(hw, np.float32)
+    wt = one if u_t is None else 1.0 - np.clip(u_t.astype(np.float32).ravel(), 0, 1)
+    wa = one if u_a is None else 1.0 - np.clip(u_a.astype(np.float32).ravel(), 0, 1)
+    m = valid * (wa * wt)[:, None, None]
+    if loss_variant == "code":  # U_A on the original slot only
+        m[:, :, 1:] = valid[:, :, 1:] * wt[:, None, None]
+    return m.astype(np.float32)
+
+
+@torch.no_grad()
+def feature_lift_sums(
+    wt_csr: tuple[Tensor, Tensor, Tensor],  # Wᵀ [P, HW] as CSR (indptr, pixels, w)
+    segs: Sequence[np.ndarray],  # per slot [L, H, W] rows of feats[a] (−1: none)
+    feats: Sequence[np.ndarray],  # per slot [n_a, D] segment features
+    m: np.ndarray,  # [HW, L, A] mask weights (`mask_weights`)
+    out: Tensor | None = None,  # [P, L, A, D] float32 to add into
+) -> Tensor:
+    """Adds one view's Σ_x W[x, k] m[x, ℓ, a] F_a[seg_a[ℓ, x]] for every Gaussian k
+    to `out` ([P, L, A, D] float32, zeros if None) and returns it.
+
+    The weights are first summed per (Gaussian, segment): every (level, slot) at
+    once, segments numbered across slots (a slot's rows are already distinct across
+    levels). That sparse matrix, its rows ordered as `out`'s (Gaussian, level,
+    slot), then multiplies the stacked segment tables: no per-pixel D-vector, and
+    only the rows this view reaches are touched.
+    """
+    indptr = wt_csr[0].numpy().astype(np.int64)
+    pix = wt_csr[1].numpy().astype(np.int64)
+    val = wt_csr[2].numpy().astype(np.float64)
+    n = len(indptr) - 1
+    n_lv, n_app, dim = segs[0].shape[0], len(segs), feats[0].shape[1]
+    if out is None:
+        out = torch.zeros(n, n_lv, n_app, dim)
+    sizes = [len(f) for f in feats]
+    offset = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    n_cols = int(offset[-1])
+    if n_cols == 0 or len(pix) == 0:
+        return out
+    table = torch.from_numpy(np.concatenate([np.asarray(f, np.float32) for f in feats]))
+    level_of = np.zeros(n_cols, np.int64)  # each column's level and slot
+    slot_of = np.repeat(np.arange(n_app), sizes)
+    gauss = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr))
+    key = np.empty((n_app, n_lv, len(pix)), np.int64)
+    wgt = np.empty((n_app, n_lv, len(pix)), np.float64)
+    for a, seg in enumerate(segs):
+        flat = seg.reshape(n_lv, -1).astype(np.int64)
+        for lv in range(n_lv):
+            level_of[np.unique(flat[lv][flat[lv] >= 0]) + offset[a]] = lv
+            c = flat[lv][pix]
+            wgt[a, lv] = np.where(c >= 0, val * m[pix, lv, a], 0.0)
+            key[a, lv] = gauss * n_cols + np.maximum(c, 0) + offset[a]
+    if n * n_cols <= DENSE_LIFT_CELLS:  # sum duplicates by counting: no sort
+        cell = np.bincount(key.ravel(), weights=wgt.ravel(), minlength=n * n_cols)
+        nz = np.flatnonzero(cell)
+        vals = cell[nz]
+    else:
+        nz, inv = np.unique(key.ravel(), return_inverse=True)
+        vals = np.bincount(inv, weights=wgt.ravel(), minlength=len(nz))
+        keep = vals != 0
+        nz, vals = nz[keep], vals[keep]
+    g_of, c_of = nz // n_cols, nz % n_cols
+    row = (g_of * n_lv + level_of[c_of]) * n_app + slot_of[c_of]
+    order = np.argsort(row, kind="stable")
+    row, c_of, vals = row[order], c_of[order], vals[order]
+    hit, counts = np.unique(row, return_counts=True)
+    ptr = np.zeros(len(hit) + 1, np.int64)
+    ptr[1:] = np.cumsum(counts)
+    csr = (
+        torch.from_numpy(ptr.astype(np.int32)),
+        torch.from_numpy(c_of.astype(np.int32)),
+        torch.from_numpy(vals.astype(np.float32)),
+    )
+    flat_out = out.view(-1, dim)
+    idx = torch.from_numpy(hit)
+    flat_out[idx] += csr_matmul(csr, n_cols, table)
+    return out
+
+
 def prepare_view(
     bw: BlendWeights,
     segs: Sequence[np.ndarray],  # per slot [L, H, W] int16 global rows (−1: none)
@@ -145,14 +232,7 @@ def prepare_view(
     for a, seg in enumerate(segs):
         s = seg.reshape(n_lv, -1).astype(np.int64)
         idx[:, :, a] = np.where(s >= 0, s + offsets[a], offsets[-1]).T
-    valid = idx != offsets[-1]
-    one = np.ones(hw, np.float32)
-    wt = one if u_t is None else 1.0 - np.clip(u_t.astype(np.float32).ravel(), 0, 1)
-    wa = one if u_a is None else 1.0 - np.clip(u_a.astype(np.float32).ravel(), 0, 1)
-    m = valid * (wa * wt)[:, None, None]
-    if loss_variant == "code":  # U_A on the original slot only
-        m[:, :, 1:] = valid[:, :, 1:] * wt[:, None, None]
-    m = m.astype(np.float32)
+    m = mask_weights(idx != offsets[-1], u_t, u_a, loss_variant)
     g = table[idx]  # [HW, L, A, 3]
 
     w_csr, t_csr = bw.csr()
@@ -494,7 +574,9 @@ __all__ = [
     "ViewData",
     "ViewStore",
     "evaluate_loss",
+    "feature_lift_sums",
     "load_codes",
+    "mask_weights",
     "masked_l1",
     "normalize_chunks",
     "prepare_view",

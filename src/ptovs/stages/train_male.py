@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import logging
 import tempfile
+import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -53,11 +54,14 @@ from ptovs.field.language import (
     MaleConfig,
     ViewStore,
     evaluate_loss,
+    feature_lift_sums,
+    mask_weights,
     normalize_chunks,
     prepare_view,
     train_male,
 )
 from ptovs.field.render import WildField
+from ptovs.nets.autoencoder import load_autoencoder
 from ptovs.raster import Camera, Gaussians, blend_weights
 from ptovs.stage import scene_input, stage_command, upstream
 
@@ -76,12 +80,14 @@ class Config:
     appearances: Literal["all", "orig"] = "all"
     """Slots trained: the original and every novel render ("all"), or the original
     only ("orig": LangSplat's single-appearance field)."""
-    mode: Literal["optimise", "lift"] = "optimise"
+    mode: Literal["optimise", "lift", "lift-features"] = "optimise"
     """How codes are fitted. "optimise": Adam on the loss (the paper); "lift": no
     training, each
     Gaussian's code is its blend- and mask-weighted mean target code over the
     train views (normalize(Σ_v W_vᵀ (m ⊙ G_v)), the optimiser's data init), in
-    one sparse pass (`--variant lift`)."""
+    one sparse pass (`--variant lift`); "lift-features": the same weighted mean
+    taken over the 512-d segment features, normalised and encoded by the AE
+    (`--variant lift-features`)."""
     loss_variant: Literal["paper", "code"] = "paper"
     use_ut: bool = True
     """Weight by (1 − U_T); off = factor 1 (Table 3 ablations)."""
@@ -150,8 +156,11 @@ def prepare_views(
     level_idx: list[int],
     config: Config,
     store: ViewStore,
+    lift: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Blend weights and targets of every view into `store`; returns seen [P] bool."""
+    """Blend weights and targets of every view into `store`; returns seen [P] bool.
+    With `lift` ([P, L, A, D]), also adds each view's weighted segment features to
+    it (`mode = "lift-features"`)."""
     seen = torch.zeros(len(gaussians), dtype=torch.bool)
     for view in tqdm(
         views, desc="train-male views", unit="view", leave=False, disable=None
@@ -173,6 +182,16 @@ def prepare_views(
             )
         bw = blend_weights(gaussians, Camera.from_view(view), backend=config.backend)
         seen |= bw.seen()
+        if lift is not None:
+            feats = inputs.features.read(name, [f"feat_{a}" for a in apps])
+            valid = np.stack([s.reshape(len(s), -1).T >= 0 for s in segs], axis=-1)
+            feature_lift_sums(
+                bw.csr()[1],
+                segs,
+                [feats[f"feat_{a}"] for a in apps],
+                mask_weights(valid, u_t, u_a, config.loss_variant),
+                out=lift,
+            )
         store.add(
             prepare_view(
                 bw,
@@ -184,6 +203,34 @@ def prepare_views(
             )
         )
     return seen
+
+
+def _encode_lift(lift: torch.Tensor, ae: Artifact) -> tuple[torch.Tensor, dict, dict]:
+    """Codes [P, L·A·3] of the lifted features [P, L, A, D]: each sum normalised to
+    a unit feature and encoded by the AE (zero sums stay zero codes)."""
+    t0 = time.perf_counter()
+    model = load_autoencoder(ae).eval()
+    n, n_lv, n_app, dim = lift.shape
+    x = lift.reshape(-1, dim)
+    norm = x.norm(dim=1)
+    reached = norm > 0
+    codes = torch.zeros(len(x), CODE_DIM)
+    with torch.no_grad():
+        for start in range(0, len(x), 65536):
+            sl = slice(start, start + 65536)
+            hit = reached[sl]
+            if hit.any():
+                part = x[sl][hit] / norm[sl][hit, None]
+                codes[start : start + len(hit)][hit] = model.encode(part)
+    metrics = {
+        "iterations": 0,
+        "epochs": 0.0,
+        "stop": "lift-features: weighted mean segment feature per Gaussian, encoded",
+        "train_seconds": round(time.perf_counter() - t0, 2),
+        "ms_per_iteration": 0.0,
+    }
+    f = codes.reshape(n, n_lv * n_app * CODE_DIM)
+    return f, metrics, {"epoch_loss": [], "epoch_seconds": []}
 
 
 def run(inputs: Inputs, config: Config, ckpt: Checkpoint | None = None) -> dict:
@@ -212,17 +259,33 @@ def run(inputs: Inputs, config: Config, ckpt: Checkpoint | None = None) -> dict:
     with tempfile.TemporaryDirectory(prefix="ptovs-male-") as tmp:
         scratch = (ckpt.folder if ckpt is not None else Path(tmp)) / "views"
         store = ViewStore(int(config.cache_mb) << 20, scratch)
-        seen = prepare_views(inputs, views, g, apps, level_idx, config, store)
+        lift = None
+        if config.mode == "lift-features":
+            dim = int(
+                inputs.features.read(views[0].name, ["feat_orig"])["feat_orig"].shape[1]
+            )
+            need = len(g) * len(levels) * len(apps) * dim * 4
+            if need > int(config.cache_mb) << 20:
+                raise ValueError(
+                    f"train-male: mode=lift-features needs {need / 2**20:.0f} MB for "
+                    f"{len(g)} Gaussians (cache_mb = {config.cache_mb}); raise "
+                    "train-male.cache_mb or use mode=lift"
+                )
+            lift = torch.zeros(len(g), len(levels), len(apps), dim)
+        seen = prepare_views(inputs, views, g, apps, level_idx, config, store, lift)
         log.info(
             "train-male: view data %.0f MB in RAM, %.0f MB memory-mapped",
             store.ram_bytes / 2**20,
             store.disk_bytes / 2**20,
         )
-        f, metrics, hist = train_male(
-            store, n_ch, male, g, cams,
-            load=(ckpt.load if ckpt else lambda: None),
-            save=(ckpt.save if ckpt else lambda s: None),
-        )  # fmt: skip
+        if lift is not None:
+            f, metrics, hist = _encode_lift(lift, inputs.ae)
+        else:
+            f, metrics, hist = train_male(
+                store, n_ch, male, g, cams,
+                load=(ckpt.load if ckpt else lambda: None),
+                save=(ckpt.save if ckpt else lambda s: None),
+            )  # fmt: skip
         final, per_level = evaluate_loss(f, store, config.loss_variant)
         del store
     codes = normalize_chunks(f).reshape(len(g), len(levels), len(apps) * CODE_DIM)
