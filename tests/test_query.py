@@ -58,6 +58,24 @@ def test_every_fusion_mode_reduces_to_the_single_map_for_one_appearance(mode):
     assert torch.allclose(rel.fuse(s, mode), s[:, 0], atol=1e-6)
 
 
+@pytest.mark.parametrize("mode", rel.FUSIONS)
+def test_fusion_weights_are_a_convex_combination_on_hard_inputs(mode):
+    """Equal maps fuse to themselves (the weights sum to 1), all-zero scores give
+    zeros, and saturated maps (0 and 1 only, all-equal columns) stay finite and
+    inside the per-pixel [min, max] of the appearances."""
+    const = torch.full((2, 4, 5, 6), 0.37)
+    torch.testing.assert_close(rel.fuse(const, mode), const[:, 0])
+    zero = torch.zeros(2, 4, 5, 6)
+    assert (rel.fuse(zero, mode) == 0).all()
+    sat = torch.rand(2, 4, 5, 6, generator=torch.Generator().manual_seed(3)) > 0.5
+    sat = sat.float()
+    sat[:, :, 0] = 1.0  # a row where every appearance is saturated
+    out = rel.fuse(sat, mode)
+    assert torch.isfinite(out).all()
+    assert (out >= sat.amin(1) - 1e-6).all() and (out <= sat.amax(1) + 1e-6).all()
+    assert (out[:, 0] == 1.0).all()
+
+
 def test_fusion_modes_on_a_hand_example():
     a = torch.zeros(1, 2, 1, 2)
     a[0, 0, 0] = torch.tensor([0.8, 0.2])  # peak 0.8
