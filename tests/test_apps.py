@@ -77,6 +77,56 @@ def test_select_hard_cases_are_finite_and_empty_when_nothing_is_valid():
     assert empty.mask.shape == (0,)
 
 
+def test_select_smoothing_over_neighbours():
+    """Self-only neighbours change nothing; a lone high score among low-scoring
+    neighbours is averaged away; a constant score stays constant."""
+    g = torch.Generator().manual_seed(2)
+    s = torch.rand(2, 1, 40, generator=g)
+    settings = rel.QuerySettings(background_filter="off")
+    plain = rel.select(s, None, settings)
+    own = rel.select(s, None, settings, neighbors=torch.arange(40)[:, None])
+    assert np.array_equal(plain.mask, own.mask) and np.allclose(
+        plain.scores, own.scores
+    )
+    spike = torch.full((1, 1, 40), 0.1)
+    spike[0, 0, 5] = 1.0  # one outlier ...
+    spike[0, 0, 20:30] = 0.6  # ... and a coherent patch
+    nbr = torch.tensor([[i, (i + 1) % 40, (i - 1) % 40] for i in range(40)])
+    out = rel.select(spike, None, settings, neighbors=nbr)
+    assert not out.mask[5] and out.mask[21:29].all()
+    assert rel.select(spike, None, settings).mask[5]  # without smoothing it wins
+    const = rel.select(torch.full((1, 1, 40), 0.3), None, settings, neighbors=nbr)
+    assert np.allclose(const.scores, 0.3)
+    with pytest.raises(ValueError, match="neighbors"):
+        rel.select(spike, None, settings, neighbors=nbr[:10])
+
+
+def test_nearest_gaussians_are_exact_and_skip_invalid_ones():
+    from ptovs.field.query import nearest_gaussians
+
+    g = torch.Generator().manual_seed(4)
+    means = torch.randn(300, 3, generator=g)
+    valid = torch.rand(300, generator=g) > 0.3
+    nbr = nearest_gaussians(means, valid, 8)
+    idx = torch.nonzero(valid).squeeze(1)
+    d = torch.cdist(means[idx], means[idx])
+    ref = idx[d.topk(8, largest=False).indices]
+    assert torch.equal(nbr[idx].sort(1).values, ref.sort(1).values)
+    assert (nbr[idx, 0] == idx).all()  # itself first
+    assert valid[nbr[idx]].all()  # only valid neighbours
+    inv = torch.nonzero(~valid).squeeze(1)
+    assert (nbr[inv] == inv[:, None]).all()
+    few = nearest_gaussians(means, torch.arange(300) < 3, 8)
+    assert few.shape == (300, 3)
+    assert (
+        nearest_gaussians(means, torch.zeros(300, dtype=torch.bool), 8).shape[0] == 300
+    )
+    bad = means.clone()
+    bad[0] = float("nan")
+    with pytest.raises(FloatingPointError):
+        nearest_gaussians(bad, torch.ones(300, dtype=torch.bool), 4)
+
+
 # ---------------------------------------------------------- select (CLI) --
 
 
@@ -121,6 +171,21 @@ def test_select_ply_holds_exactly_the_selected_gaussians(
     pid, _ = nearest_parts(tiny_scene_dir, sel["means"])
     every, _ = nearest_parts(tiny_scene_dir, means)
     assert float(np.mean(pid == wall)) > float(np.mean(every == wall)) + 0.04
+    # the 3-D gate and smoothing: visibility is a blend weight, the gated and
+    # smoothed selection keeps to the selectable Gaussians and still finds the wall
+    from ptovs.field.query import SelectOptions
+
+    vis = querier.visibility()
+    assert vis.shape == (len(means),) and torch.isfinite(vis).all()
+    assert float(vis.min()) >= 0 and float(vis.max()) <= 1 and float(vis.max()) > 0.5
+    opt = SelectOptions(min_visibility=0.05, smooth=8)
+    gated = querier.select("Brick Facade", opt)
+    assert gated.mask.any() and not gated.mask[(vis < 0.05).numpy()].any()
+    res2 = _cli(app_work, "select", "Brick Facade", "--data", str(tiny_scene_dir),
+                "--out", str(tmp_path / "g.ply"), "--min-visibility", "0.05",
+                "--smooth", "8")  # fmt: skip
+    assert res2.exit_code == 0, res2.output + repr(res2.exception)
+    assert json.loads((tmp_path / "g.json").read_text())["selected"] == gated.mask.sum()
 
 
 def test_nearest_parts_reads_the_world_truth(tiny_scene_dir):

@@ -7,7 +7,9 @@ rendered codes (the same table, relevancy at temperature 10, background filter
 and fusion over appearances; the [query] config section applies), the level with
 the highest score is kept, and the Gaussians above the relative threshold
 (min-max over the trained Gaussians, n > 0.7 for τ = 0.4) are selected. Gaussians
-train-male never saw are never selected; `--min-opacity` also drops faint ones.
+train-male never saw are never selected; `--min-opacity` drops faint ones and
+`--min-visibility` those no train view shows with a blend weight that large;
+`--smooth K` averages each Gaussian's score over its K nearest before the threshold.
 The PLY is the one `ptovs export-ply` writes (appearance baked in).
 """
 
@@ -21,16 +23,20 @@ import click
 
 from ptovs.apps import close_inputs, trained_chain
 from ptovs.errors import InputError
+from ptovs.field.query import SelectOptions
 from ptovs.stage import RunContext, chain_options
 
+_DEFAULTS = SelectOptions()
 
-def select_gaussians(chain, text: str, min_opacity: float = 0.0):
-    """(Selection, Querier) for one text on the chain's trained field."""
+
+def select_gaussians(chain, text: str, options=None):
+    """(Selection, Querier, inputs) for one text on the chain's trained field;
+    `options` a `ptovs.field.query.SelectOptions` (None: the defaults)."""
     from ptovs.field.query import Querier
 
     inputs = chain.inputs("query")
     querier = Querier(inputs, chain.config("query"), [text])
-    return querier.select(text, min_opacity), querier, inputs
+    return querier.select(text, options), querier, inputs
 
 
 @click.command(name="select")
@@ -51,9 +57,26 @@ def select_gaussians(chain, text: str, min_opacity: float = 0.0):
 @click.option(
     "--min-opacity",
     type=click.FloatRange(0.0, 1.0),
-    default=0.0,
+    default=_DEFAULTS.min_opacity,
     show_default=True,
     help="Never select Gaussians less opaque than this.",
+)
+@click.option(
+    "--min-visibility",
+    type=click.FloatRange(0.0, 1.0),
+    default=_DEFAULTS.min_visibility,
+    show_default=True,
+    help="Never select Gaussians whose largest blend weight (alpha x transmittance) "
+    "in any train view is below this: hidden or faint ones no photo constrains "
+    "(0: off).",
+)
+@click.option(
+    "--smooth",
+    type=click.IntRange(0, 256),
+    default=_DEFAULTS.smooth,
+    show_default=True,
+    help="Average each Gaussian's score over its this many nearest Gaussians "
+    "before thresholding, the 3-D counterpart of the 2-D mean filter (0: off).",
 )
 @click.option(
     "--image",
@@ -69,6 +92,8 @@ def command(
     out: Path,
     rest: Path | None,
     min_opacity: float,
+    min_visibility: float,
+    smooth: int,
     image: str | None,
     variant: str,
     sets: tuple[str, ...],
@@ -86,7 +111,8 @@ def command(
 
     chain, ref = trained_chain(obj, scene_name, data, variant, sets)
     t0 = time.perf_counter()
-    sel, querier, inputs = select_gaussians(chain, text, min_opacity)
+    options = SelectOptions(min_opacity, min_visibility, smooth)
+    sel, querier, inputs = select_gaussians(chain, text, options)
     seconds = time.perf_counter() - t0
     try:
         n = int(sel.mask.sum())

@@ -36,7 +36,7 @@ from ptovs.field.relevancy import (
 )
 from ptovs.field.render import WildField
 from ptovs.nets.autoencoder import load_autoencoder
-from ptovs.raster import Camera, render
+from ptovs.raster import Camera, blend_weights, render
 
 
 @dataclass(frozen=True)
@@ -88,6 +88,45 @@ class QueryConfig:
             majority=self.majority,
             majority_exact=self.majority_exact,
         )
+
+
+@dataclass(frozen=True)
+class SelectOptions:
+    """The 3-D selection's own knobs (`ptovs select`, `ptovs roam`): the 2-D path's
+    support mask and mean filter have no grid to work on, so the selection gets
+    a visibility gate and a smoothing over nearest Gaussians instead."""
+
+    min_opacity: float = 0.0
+    """Never select Gaussians less opaque than this."""
+    min_visibility: float = 0.0
+    """Never select Gaussians whose largest blend weight (α·T) in any train view
+    is below this: hidden or faint ones, which no photo constrains."""
+    smooth: int = 0
+    """Average each Gaussian's fused score over its this many nearest selectable
+    Gaussians (itself included) before thresholding; 0 or 1: off."""
+
+
+def nearest_gaussians(means: torch.Tensor, valid: torch.Tensor, k: int) -> torch.Tensor:
+    """[P, k] int64: each valid Gaussian's k nearest valid Gaussians by centre
+    (itself first; exact, OpenCV's single k-d tree); invalid rows point at
+    themselves. Fewer than k valid Gaussians: k shrinks to their count."""
+    import cv2
+
+    n = len(means)
+    out = torch.arange(n)[:, None].repeat(1, max(k, 1))
+    idx = torch.nonzero(valid).squeeze(1)
+    if len(idx) == 0:
+        return out
+    k_eff = min(k, len(idx))
+    pts = np.ascontiguousarray(means[idx].detach().numpy(), np.float32)
+    if not np.isfinite(pts).all():
+        raise FloatingPointError("select: a Gaussian centre is not finite")
+    tree = cv2.flann_Index(pts, {"algorithm": 4, "leaf_max_size": 10})
+    nn, _ = tree.knnSearch(pts, k_eff, params={})
+    near = idx[torch.from_numpy(nn.astype(np.int64))]
+    out = out[:, :k_eff].clone()
+    out[idx] = near
+    return out
 
 
 def encoder_name(config: QueryConfig, scene: Any) -> str:
@@ -210,6 +249,8 @@ class Querier:
         self.bg = [self.index[p] for p in bg]
         self.canonical = [self.index[p] for p in config.canonical]
         self._tables: dict[tuple, torch.Tensor] = {}
+        self.scene = inputs.scene
+        self._visibility: torch.Tensor | None = None
 
     @torch.no_grad()
     def code_maps(self, view) -> tuple[torch.Tensor, torch.Tensor]:
@@ -246,20 +287,47 @@ class Querier:
         return self._tables[key]
 
     @torch.no_grad()
-    def select(self, query: str, min_opacity: float = 0.0) -> Selection:
+    def select(self, query: str, options: SelectOptions | None = None) -> Selection:
         """The 3-D query: decode every Gaussian's codes (no rendering) and select.
 
-        Gaussians train-male never saw (zero codes) and those less opaque than
-        `min_opacity` are never selected; see `ptovs.field.relevancy.select`.
+        Gaussians train-male never saw (zero codes), those less opaque than
+        `options.min_opacity` and those whose largest blend weight in any train
+        view is below `options.min_visibility` are never selected; the fused
+        score is averaged over each Gaussian's `options.smooth` nearest selectable
+        Gaussians. See `ptovs.field.relevancy.select`.
         """
+        opt = options or SelectOptions()
         q = self.index[query]
         n = len(self.colors)
         codes = self.colors.reshape(n, len(self.levels), len(self.apps), CODE_DIM)
         valid = codes.flatten(1).abs().amax(1) > 0
-        if min_opacity > 0:
-            valid &= self.gaussians.opacities.reshape(-1) >= min_opacity
+        if opt.min_opacity > 0:
+            valid &= self.gaussians.opacities.reshape(-1) >= opt.min_opacity
+        if opt.min_visibility > 0:
+            valid &= self.visibility() >= opt.min_visibility
+        neighbors = None
+        if opt.smooth > 1:
+            neighbors = nearest_gaussians(self.gaussians.means, valid, opt.smooth)
         s, b = self.scorer(codes.permute(1, 2, 0, 3), (q,))(q)  # [L, A, P]
-        return select(s, b, self.settings, valid)
+        return select(s, b, self.settings, valid, neighbors)
+
+    @torch.no_grad()
+    def visibility(self) -> torch.Tensor:
+        """[P] each Gaussian's largest blend weight α·T over the pixels of the
+        train views (0: no train view shows it); computed once."""
+        if self._visibility is None:
+            best = torch.zeros(len(self.gaussians))
+            for view in self.scene.train_views():
+                bw = blend_weights(
+                    self.gaussians, Camera.from_view(view), backend=self.config.backend
+                )
+                indptr, _, vals = bw.csr()[1]
+                rows = torch.repeat_interleave(
+                    torch.arange(len(best)), torch.diff(indptr.long())
+                )
+                best.scatter_reduce_(0, rows, vals.float(), "amax")
+            self._visibility = best
+        return self._visibility
 
     def scorer(
         self, codes: torch.Tensor, image_queries: tuple[int, ...]
@@ -308,8 +376,10 @@ def read_results(
 __all__ = [
     "QueryConfig",
     "Querier",
+    "SelectOptions",
     "check_vocabulary",
     "encoder_name",
+    "nearest_gaussians",
     "read_results",
     "resolve_queries",
     "resolve_views",

@@ -386,6 +386,7 @@ def select(
     b: Tensor | None,
     settings: QuerySettings,
     valid: Tensor | None = None,
+    neighbors: Tensor | None = None,
 ) -> Selection:
     """The 3-D query (PAPER_SPEC.md §10.1): per Gaussian instead of per pixel.
 
@@ -402,6 +403,9 @@ def select(
         settings: the query knobs (temperature is already applied in s and b).
         valid: [P] bool, Gaussians that may be selected (trained and opaque
             enough); the others score 0 and are never selected. None: all.
+        neighbors: [P, k] int64, each Gaussian's k nearest (itself included):
+            the fused score is averaged over them before the level choice, the
+            3-D counterpart of the 2-D mean filter. None: no smoothing.
     """
     L, N, P = s.shape  # noqa: N806
     if valid is None:
@@ -412,7 +416,14 @@ def select(
     if b is not None:  # [L, P] (paper) or [1, P] (code): broadcast over appearances
         b = reduce_background(b[..., None], settings.background_filter)[..., 0]
         s = s * (1.0 - b)[:, None]
-    fused = fuse(s[..., None], settings.fusion)[..., 0].numpy().astype(np.float32)
+    fused_t = fuse(s[..., None], settings.fusion)[..., 0]
+    if neighbors is not None:
+        if neighbors.shape[0] != P:
+            raise ValueError(
+                f"neighbors has {neighbors.shape[0]} rows for {P} Gaussians"
+            )
+        fused_t = fused_t[:, neighbors].mean(-1)
+    fused = fused_t.numpy().astype(np.float32)
     v = valid.numpy()
     peaks = fused[:, v].max(1)
     level = int(np.argmax(peaks))
