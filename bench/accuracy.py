@@ -30,10 +30,13 @@ at a time on two cores, one thread each), the instrument measures, on every
   no-multi-appearance, no-tum-aum, no-tum, no-aum, no-bg-filter, imglvlmax,
   pixmax, pixavg, pixweighted   Table 3 rows 1 and 6-13 (ptovs.variants)
   budget-300, budget-3k         train-male at two fixed iteration budgets
-  no-uncertainty-ae, ae-loss-only   on request only (--labels): Table 3 row 3
-                      (train-ae unweighted) and the authors' code's AE weighting
+  no-uncertainty-ae, ae-loss-only, lift-codes   on request only (--labels):
+                      Table 3 row 3 (train-ae unweighted), the authors' code's AE
+                      weighting, the code-space lift
   lift                the training-free lift (`--variant lift`): the full method's
-                      inputs, each Gaussian's code its weighted mean target code
+                      inputs, each Gaussian's code the AE's code of its weighted
+                      mean segment feature (lift-codes, on request: of its mean
+                      target code)
 
 A finished seed's pairs go to <work>/results/<scene>.json (atomically); a rerun
 skips the variants a seed already has, and an interrupted seed resumes from the
@@ -94,7 +97,7 @@ CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
 }
 # measured only when asked for (--labels): candidates for issue 22's fixes, kept out
 # of the default run so that `make bench-accuracy` stays what the report describes
-OPTIONAL_LABELS = ("no-uncertainty-ae", "ae-loss-only", "lift-features")
+OPTIONAL_LABELS = ("no-uncertainty-ae", "ae-loss-only", "lift-codes")
 CHAIN_LABELS.update({v: (v, {}) for v in OPTIONAL_LABELS})
 FEATURE_LABELS = ("2d", "2d-ae")
 ALL_LABELS = ("male", *FEATURE_LABELS, *(k for k in CHAIN_LABELS if k != "male"))

@@ -495,7 +495,7 @@ def test_lift_matches_float64_reference():
             num[:, a] += wmat.T @ torch.from_numpy(gt * wgt[:, None])
     ref = num / num.norm(dim=-1, keepdim=True).clamp_min(1e-300)
     ref[num.norm(dim=-1) == 0] = 0
-    f, metrics, hist = lang.train_male(store, 6, lang.MaleConfig(mode="lift"))
+    f, metrics, hist = lang.train_male(store, 6, lang.MaleConfig(mode="lift-codes"))
     got = f.reshape(3, 2, 3).double()
     torch.testing.assert_close(got, ref, rtol=0, atol=1e-6)
     assert metrics["iterations"] == 0 and hist["epoch_loss"] == []
@@ -537,7 +537,7 @@ def test_lift_hard_cases_are_finite():
                  (segs, [c * 1e4 for c in codes], None, None)):  # fmt: skip
         store = lang.ViewStore(1 << 30, None)
         store.add(lang.prepare_view(bw, *args))
-        f, _, _ = lang.train_male(store, 18, lang.MaleConfig(mode="lift"))
+        f, _, _ = lang.train_male(store, 18, lang.MaleConfig(mode="lift-codes"))
         assert torch.isfinite(f).all()
         norms = f.reshape(len(g), -1, 3).norm(dim=-1)
         assert (((norms - 1).abs() < 1e-5) | (norms == 0)).all()
@@ -552,7 +552,7 @@ def test_lift_variant_on_tiny(trained):
     """`--variant lift`: the full method's train-ae reused, train-male without an
     optimiser; finite codes, unit 3-chunks where seen, same layout as the default."""
     work, data, out = trained
-    lifted = run_cli(work, "train", "--variant", "lift", "--data", str(data))
+    lifted = run_cli(work, "train", "--variant", "lift-codes", "--data", str(data))
     assert "train-ae             cached" in lifted, lifted
     # same key (file name) as the default chain's AE; `out` ran in another work dir
     assert _path_of(lifted, "train-ae").name == _path_of(out, "train-ae").name
@@ -560,7 +560,7 @@ def test_lift_variant_on_tiny(trained):
     male_path = path.parent / _path_of(out, "train-male").name
     assert path != male_path and male_path.is_file()
     with Artifact(path) as art, Artifact(male_path) as male:
-        assert art.config["mode"] == "lift"
+        assert art.config["mode"] == "lift-codes"
         metrics = read_json_dataset(art.root()["metrics_json"])
         assert metrics["iterations"] == 0 and metrics["stop"].startswith("lift")
         codes, meta = load_codes(art)
@@ -573,9 +573,9 @@ def test_lift_variant_on_tiny(trained):
         # the lift is the optimiser's starting point: trained codes stay close to it
         cos = (codes * ref).sum(-1)[torch.from_numpy(seen)]
         assert float(cos.mean()) > 0.5
-    feat = run_cli(work, "train", "--variant", "lift-features", "--data", str(data))
+    feat = run_cli(work, "train", "--variant", "lift", "--data", str(data))
     with Artifact(_path_of(feat, "train-male")) as art:
-        assert art.config["mode"] == "lift-features"
+        assert art.config["mode"] == "lift"
         codes, meta = load_codes(art)
         assert meta == ref_meta and np.isfinite(art.root()["codes"]).all()
         seen = np.unpackbits(art.root()["seen_bits"], count=len(codes)).astype(bool)

@@ -6,8 +6,9 @@
 - `langsplat-wild`: the same recipe on the in-the-wild geometry, so that geometry
   and language effects can be told apart.
 - `lift`: the full method's inputs, but train-male without an optimiser: each
-  Gaussian's code is its blend- and uncertainty-weighted mean target code over the
-  train views (`train-male.mode = "lift"`).
+  Gaussian's blend- and uncertainty-weighted mean segment feature over the train
+  views, encoded by the AE (`train-male.mode = "lift"`); `lift-codes` takes that
+  mean over the 3-d target codes instead.
 
 The LangSplat recipes extract features of the original photos only
 (`extract-features.images = "orig"`), which depend on the photos alone: both
@@ -35,10 +36,11 @@ VARIANTS: dict[str, dict[str, list[str]]] = {
         "train-ae": ["weighting=none", "tau_u=1.0"],
         "train-male": ["appearances=orig", "use_ut=false", "use_ua=false"],
     },
-    # the training-free lift: each Gaussian's code is its weighted mean target code
+    # the training-free lift: each Gaussian's weighted mean 512-d segment feature,
+    # encoded by the AE
     "lift": {"train-male": ["mode=lift"]},
-    # the same over the 512-d segment features, then encoded by the AE
-    "lift-features": {"train-male": ["mode=lift-features"]},
+    # the same mean taken over the 3-d target codes
+    "lift-codes": {"train-male": ["mode=lift-codes"]},
     # Table 3 ablations
     "no-multi-appearance": {"train-male": ["appearances=orig"]},  # row 1
     "no-uncertainty-ae": {"train-ae": ["weighting=none"]},  # row 3

@@ -151,7 +151,7 @@ def feature_lift_sums(
     """
     indptr = wt_csr[0].numpy().astype(np.int64)
     pix = wt_csr[1].numpy().astype(np.int64)
-    val = wt_csr[2].numpy().astype(np.float64)
+    val = wt_csr[2].numpy().astype(np.float32)
     n = len(indptr) - 1
     n_lv, n_app, dim = segs[0].shape[0], len(segs), feats[0].shape[1]
     if out is None:
@@ -164,16 +164,17 @@ def feature_lift_sums(
     table = torch.from_numpy(np.concatenate([np.asarray(f, np.float32) for f in feats]))
     level_of = np.zeros(n_cols, np.int64)  # each column's level and slot
     slot_of = np.repeat(np.arange(n_app), sizes)
-    gauss = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr))
+    gauss = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr)) * n_cols
     key = np.empty((n_app, n_lv, len(pix)), np.int64)
-    wgt = np.empty((n_app, n_lv, len(pix)), np.float64)
+    wgt = np.empty((n_app, n_lv, len(pix)), np.float32)
     for a, seg in enumerate(segs):
         flat = seg.reshape(n_lv, -1).astype(np.int64)
         for lv in range(n_lv):
-            level_of[np.unique(flat[lv][flat[lv] >= 0]) + offset[a]] = lv
-            c = flat[lv][pix]
-            wgt[a, lv] = np.where(c >= 0, val * m[pix, lv, a], 0.0)
-            key[a, lv] = gauss * n_cols + np.maximum(c, 0) + offset[a]
+            level_of[flat[lv][flat[lv] >= 0] + offset[a]] = lv
+        c = flat[:, pix]  # [L, nnz]
+        w = np.ascontiguousarray(m[:, :, a].T)[:, pix] * val
+        wgt[a] = np.where(c >= 0, w, 0.0)
+        key[a] = gauss + (np.maximum(c, 0) + offset[a])
     if n * n_cols <= DENSE_LIFT_CELLS:  # sum duplicates by counting: no sort
         cell = np.bincount(key.ravel(), weights=wgt.ravel(), minlength=n * n_cols)
         nz = np.flatnonzero(cell)
@@ -187,17 +188,16 @@ def feature_lift_sums(
     row = (g_of * n_lv + level_of[c_of]) * n_app + slot_of[c_of]
     order = np.argsort(row, kind="stable")
     row, c_of, vals = row[order], c_of[order], vals[order]
-    hit, counts = np.unique(row, return_counts=True)
-    ptr = np.zeros(len(hit) + 1, np.int64)
-    ptr[1:] = np.cumsum(counts)
-    csr = (
-        torch.from_numpy(ptr.astype(np.int32)),
-        torch.from_numpy(c_of.astype(np.int32)),
+    ptr = np.zeros(n * n_lv * n_app + 1, np.int64)  # CSR over every output row
+    ptr[1:] = np.bincount(row, minlength=n * n_lv * n_app)
+    a_mat = torch.sparse_csr_tensor(
+        torch.from_numpy(np.cumsum(ptr)),
+        torch.from_numpy(c_of),
         torch.from_numpy(vals.astype(np.float32)),
+        size=(n * n_lv * n_app, n_cols),
+        check_invariants=True,
     )
-    flat_out = out.view(-1, dim)
-    idx = torch.from_numpy(hit)
-    flat_out[idx] += csr_matmul(csr, n_cols, table)
+    out.view(-1, dim).addmm_(a_mat, table)  # accumulates in place
     return out
 
 
@@ -391,7 +391,8 @@ def train_step(
 @torch.no_grad()
 def data_init(store: ViewStore, n_channels: int) -> Tensor:
     """Each Gaussian's mask- and blend-weighted mean target code, unit length: the
-    training-free lift (`mode = "lift"`) and the optimiser's start (`init = "data"`).
+    code-space lift (`mode = "lift-codes"`) and the optimiser's start
+    (`init = "data"`).
 
     Σ_v W_vᵀ (m ⊙ G) / Σ_v W_vᵀ m per 3-chunk, normalised (the positive denominator
     drops out of the normalisation, so only the numerator is formed); m carries the
@@ -439,20 +440,23 @@ def train_male(
     if n_views == 0:
         raise ValueError("train-male: no training views")
     hw, n_lv, n_app, n = store[0].shape
-    if config.mode == "lift":
+    if config.mode == "lift-codes":
         t0 = time.perf_counter()
         f = data_init(store, n_channels)
         seconds = time.perf_counter() - t0
         metrics = {
             "iterations": 0,
             "epochs": 0.0,
-            "stop": "lift: blend-weighted mean target code per Gaussian, no optimiser",
+            "stop": "lift-codes: blend-weighted mean target code per Gaussian",
             "train_seconds": round(seconds, 2),
             "ms_per_iteration": 0.0,
         }
         return f, metrics, {"epoch_loss": [], "epoch_seconds": []}
     if config.mode != "optimise":
-        raise ValueError(f"mode must be 'optimise' or 'lift', not {config.mode!r}")
+        raise ValueError(
+            f"mode must be 'optimise' or 'lift-codes' here, not {config.mode!r} "
+            "('lift' lifts the 512-d features in the train-male stage)"
+        )
     f0 = data_init(store, n_channels) if config.init == "data" else None
     f = torch.zeros(n, n_channels) if f0 is None else f0
     f.requires_grad_(True)

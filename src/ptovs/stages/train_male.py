@@ -18,11 +18,14 @@ Rendering: `renderer = "sparse"` (default) builds each view's blend weights W_v
 once (kept in RAM up to `cache_mb`, spilled to memory-mapped files beyond it), so a
 step is W_v · normalize(f) and W_vᵀ · g; `"raster"` rasterises every step.
 
-Lift (`mode = "lift"`, `--variant lift`): no optimisation; each Gaussian's code per
-level and slot is its blend- and mask-weighted mean target code over the train views,
-normalize(Σ_v W_vᵀ (m_v ⊙ G_v)) with the same weights m as the loss (so U_T and U_A
-apply where `use_ut` / `use_ua` say). One sparse product per view, seconds instead of
-minutes; it is also the optimiser's starting point (`init = "data"`).
+Lift (`mode = "lift"`, `--variant lift`): no optimisation; each Gaussian's feature
+per level and slot is its blend- and mask-weighted mean 512-d segment feature over the
+train views, Σ_v W_vᵀ (m_v ⊙ F_v[seg_v]) with the same weights m as the loss (so U_T
+and U_A apply where `use_ut` / `use_ua` say), normalised and encoded by the AE. Per
+view the weights are summed per (Gaussian, segment) and multiply the segment table
+once, so no per-pixel 512-vector is formed. `mode = "lift-codes"` takes the same mean
+over the 3-d target codes instead (the optimiser's starting point, `init = "data"`);
+docs/benchmarks.md measures both against the optimiser.
 
 Stopping: up to `iterations` (30k, the paper's); with `stop = "plateau"` (default)
 training ends once the epoch-mean loss (one pass over all views) has stayed above
@@ -80,14 +83,14 @@ class Config:
     appearances: Literal["all", "orig"] = "all"
     """Slots trained: the original and every novel render ("all"), or the original
     only ("orig": LangSplat's single-appearance field)."""
-    mode: Literal["optimise", "lift", "lift-features"] = "optimise"
-    """How codes are fitted. "optimise": Adam on the loss (the paper); "lift": no
-    training, each
+    mode: Literal["optimise", "lift", "lift-codes"] = "optimise"
+    """How codes are fitted. "optimise": Adam on the loss (the paper); "lift-codes":
+    no training, each
     Gaussian's code is its blend- and mask-weighted mean target code over the
     train views (normalize(Σ_v W_vᵀ (m ⊙ G_v)), the optimiser's data init), in
-    one sparse pass (`--variant lift`); "lift-features": the same weighted mean
-    taken over the 512-d segment features, normalised and encoded by the AE
-    (`--variant lift-features`)."""
+    one sparse pass (`--variant lift-codes`); "lift": the same weighted mean taken
+    over the 512-d segment features, normalised and encoded by the AE
+    (`--variant lift`)."""
     loss_variant: Literal["paper", "code"] = "paper"
     use_ut: bool = True
     """Weight by (1 − U_T); off = factor 1 (Table 3 ablations)."""
@@ -160,7 +163,7 @@ def prepare_views(
 ) -> torch.Tensor:
     """Blend weights and targets of every view into `store`; returns seen [P] bool.
     With `lift` ([P, L, A, D]), also adds each view's weighted segment features to
-    it (`mode = "lift-features"`)."""
+    it (`mode = "lift"`)."""
     seen = torch.zeros(len(gaussians), dtype=torch.bool)
     for view in tqdm(
         views, desc="train-male views", unit="view", leave=False, disable=None
@@ -225,7 +228,7 @@ def _encode_lift(lift: torch.Tensor, ae: Artifact) -> tuple[torch.Tensor, dict, 
     metrics = {
         "iterations": 0,
         "epochs": 0.0,
-        "stop": "lift-features: weighted mean segment feature per Gaussian, encoded",
+        "stop": "lift: weighted mean segment feature per Gaussian, encoded",
         "train_seconds": round(time.perf_counter() - t0, 2),
         "ms_per_iteration": 0.0,
     }
@@ -260,16 +263,16 @@ def run(inputs: Inputs, config: Config, ckpt: Checkpoint | None = None) -> dict:
         scratch = (ckpt.folder if ckpt is not None else Path(tmp)) / "views"
         store = ViewStore(int(config.cache_mb) << 20, scratch)
         lift = None
-        if config.mode == "lift-features":
+        if config.mode == "lift":
             dim = int(
                 inputs.features.read(views[0].name, ["feat_orig"])["feat_orig"].shape[1]
             )
             need = len(g) * len(levels) * len(apps) * dim * 4
             if need > int(config.cache_mb) << 20:
                 raise ValueError(
-                    f"train-male: mode=lift-features needs {need / 2**20:.0f} MB for "
+                    f"train-male: mode=lift needs {need / 2**20:.0f} MB for "
                     f"{len(g)} Gaussians (cache_mb = {config.cache_mb}); raise "
-                    "train-male.cache_mb or use mode=lift"
+                    "train-male.cache_mb or use mode=lift-codes"
                 )
             lift = torch.zeros(len(g), len(levels), len(apps), dim)
         seen = prepare_views(inputs, views, g, apps, level_idx, config, store, lift)
