@@ -47,7 +47,6 @@ from ptovs.raster import (
 log = logging.getLogger(__name__)
 
 NORM_EPS = 1e-9  # the authors' x / (‖x‖ + 1e-9)
-DENSE_LIFT_CELLS = 1 << 25  # Gaussian × segment cells summed by bincount (256 MB)
 CODE_DIM = 3
 
 
@@ -143,19 +142,18 @@ def feature_lift_sums(
     """Adds one view's Σ_x W[x, k] m[x, ℓ, a] F_a[seg_a[ℓ, x]] for every Gaussian k
     to `out` ([P, L, A, D] float32, zeros if None) and returns it.
 
-    The weights are first summed per (Gaussian, segment): every (level, slot) at
-    once, segments numbered across slots (a slot's rows are already distinct across
-    levels). That sparse matrix, its rows ordered as `out`'s (Gaussian, level,
-    slot), then multiplies the stacked segment tables: no per-pixel D-vector, and
-    only the rows this view reaches are touched.
+    Two sparse products and no per-pixel D-vector: Wᵀ [P, HW] times S [HW, K], the
+    mask-weighted pixel-to-segment map of every (level, slot) at once (segments
+    numbered across slots; a slot's rows are already distinct across levels), gives
+    the (Gaussian, segment) weights; those, rows ordered as `out`'s (Gaussian,
+    level, slot), multiply the stacked segment tables, added into `out` in place.
     """
-    indptr = wt_csr[0].numpy().astype(np.int64)
-    pix = wt_csr[1].numpy().astype(np.int64)
-    val = wt_csr[2].numpy().astype(np.float32)
+    indptr, pix, val = wt_csr
     n = len(indptr) - 1
     n_lv, n_app, dim = segs[0].shape[0], len(segs), feats[0].shape[1]
     if out is None:
         out = torch.zeros(n, n_lv, n_app, dim)
+    hw = m.shape[0]
     sizes = [len(f) for f in feats]
     offset = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     n_cols = int(offset[-1])
@@ -164,39 +162,39 @@ def feature_lift_sums(
     table = torch.from_numpy(np.concatenate([np.asarray(f, np.float32) for f in feats]))
     level_of = np.zeros(n_cols, np.int64)  # each column's level and slot
     slot_of = np.repeat(np.arange(n_app), sizes)
-    gauss = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr)) * n_cols
-    key = np.empty((n_app, n_lv, len(pix)), np.int64)
-    wgt = np.empty((n_app, n_lv, len(pix)), np.float32)
+    cols = np.empty((hw, n_lv * n_app), np.int64)  # S [HW, K]: a pixel's segments
+    wts = np.empty((hw, n_lv * n_app), np.float32)
     for a, seg in enumerate(segs):
         flat = seg.reshape(n_lv, -1).astype(np.int64)
         for lv in range(n_lv):
-            level_of[flat[lv][flat[lv] >= 0] + offset[a]] = lv
-        c = flat[:, pix]  # [L, nnz]
-        w = np.ascontiguousarray(m[:, :, a].T)[:, pix] * val
-        wgt[a] = np.where(c >= 0, w, 0.0)
-        key[a] = gauss + (np.maximum(c, 0) + offset[a])
-    if n * n_cols <= DENSE_LIFT_CELLS:  # sum duplicates by counting: no sort
-        cell = np.bincount(key.ravel(), weights=wgt.ravel(), minlength=n * n_cols)
-        nz = np.flatnonzero(cell)
-        vals = cell[nz]
-    else:
-        nz, inv = np.unique(key.ravel(), return_inverse=True)
-        vals = np.bincount(inv, weights=wgt.ravel(), minlength=len(nz))
-        keep = vals != 0
-        nz, vals = nz[keep], vals[keep]
-    g_of, c_of = nz // n_cols, nz % n_cols
-    row = (g_of * n_lv + level_of[c_of]) * n_app + slot_of[c_of]
-    order = np.argsort(row, kind="stable")
-    row, c_of, vals = row[order], c_of[order], vals[order]
-    ptr = np.zeros(n * n_lv * n_app + 1, np.int64)  # CSR over every output row
-    ptr[1:] = np.bincount(row, minlength=n * n_lv * n_app)
-    a_mat = torch.sparse_csr_tensor(
-        torch.from_numpy(np.cumsum(ptr)),
-        torch.from_numpy(c_of),
-        torch.from_numpy(vals.astype(np.float32)),
-        size=(n * n_lv * n_app, n_cols),
-        check_invariants=True,
+            c = flat[lv]
+            level_of[c[c >= 0] + offset[a]] = lv
+            cols[:, a * n_lv + lv] = np.maximum(c, 0) + offset[a]
+            wts[:, a * n_lv + lv] = np.where(c >= 0, m[:, lv, a], 0.0)
+    keep = wts > 0
+    s_ptr = np.zeros(hw + 1, np.int64)
+    s_ptr[1:] = np.cumsum(keep.sum(1))
+    s_mat = torch.sparse_csr_tensor(
+        torch.from_numpy(s_ptr), torch.from_numpy(cols[keep]),
+        torch.from_numpy(wts[keep]), size=(hw, n_cols), check_invariants=True,
+    )  # fmt: skip
+    w_mat = torch.sparse_csr_tensor(
+        indptr.long(), pix.long(), val.float(), size=(n, hw), check_invariants=True
     )
+    gs = torch.sparse.mm(w_mat, s_mat)  # [P, K]: (Gaussian, segment) weights
+    g_ptr = gs.crow_indices().numpy()
+    c_of = gs.col_indices().numpy()
+    vals = gs.values().numpy()
+    g_of = np.repeat(np.arange(n, dtype=np.int64), np.diff(g_ptr))
+    row = (g_of * n_lv + level_of[c_of]) * n_app + slot_of[c_of]
+    order = np.argsort(row * n_cols + c_of)  # rows, then columns (sorted CSR)
+    ptr = np.zeros(n * n_lv * n_app + 1, np.int64)  # CSR over every output row
+    ptr[1:] = np.cumsum(np.bincount(row, minlength=n * n_lv * n_app))
+    a_mat = torch.sparse_csr_tensor(
+        torch.from_numpy(ptr), torch.from_numpy(c_of[order].astype(np.int64)),
+        torch.from_numpy(vals[order].astype(np.float32)),
+        size=(n * n_lv * n_app, n_cols), check_invariants=True,
+    )  # fmt: skip
     out.view(-1, dim).addmm_(a_mat, table)  # accumulates in place
     return out
 
