@@ -74,6 +74,8 @@ ACC_SEEDS ?= 0-17
 bench-accuracy: setup
 	$(BIN)/python bench/accuracy.py --preset small --seeds $(ACC_SEEDS) \
 	  --data $(DATA)/accuracy --work $(WORK)/accuracy --plot docs/img/speed_vs_miou.png
+	$(BIN)/python bench/select3d.py --seeds 0-8 --data $(DATA)/accuracy --work $(WORK)/accuracy
+	$(BIN)/python bench/select3d.py --seeds 9-17 --data $(DATA)/accuracy --work $(WORK)/accuracy
 
 # threads per scene job: the cores shared among make's parallel jobs (-jN; a bare -j
 # counts as one job per core), at least one. OpenMP teams on oversubscribed cores
