@@ -63,7 +63,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import ROOT, seed_list  # noqa: E402  (same folder)
+
 VERSION = 1  # bump when what a seed's results mean changes
 
 # label -> (ptovs.variants name, extra --set items per stage); the order is the
@@ -777,14 +779,6 @@ def _plot(summ: dict, path: Path) -> None:
 # ---------------------------------------------------------------------- main --
 
 
-def _seeds(items: list[str]) -> list[int]:
-    out: list[int] = []
-    for it in items:
-        a, _, b = it.partition("-")
-        out += list(range(int(a), int(b) + 1)) if b else [int(a)]
-    return list(dict.fromkeys(out))
-
-
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -807,8 +801,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--plot", type=Path, default=None,
                     help="write the speed-against-error plot here")  # fmt: skip
     args = ap.parse_args(argv)
-    args.seeds = _seeds(args.seeds)
-    args.dev = _seeds(args.dev) if args.dev else args.seeds[: len(args.seeds) // 2]
+    args.seeds = seed_list(args.seeds)
+    args.dev = seed_list(args.dev) if args.dev else args.seeds[: len(args.seeds) // 2]
     args.work.mkdir(parents=True, exist_ok=True)
     if args.one_seed is not None:
         run_seed(args, args.one_seed)

@@ -2,6 +2,7 @@
 fresh process, and the results file every script keeps.
 
     from common import ROOT, Results, bench_scene, run_ptovs   # (bench/ is on sys.path)
+    from common import seed_list                                 # "0-17" "20" -> seeds
 """
 
 from __future__ import annotations
@@ -90,3 +91,12 @@ def bench_scene(data: Path, seed: int) -> Path:
             check=True,
         )
     return scene
+
+
+def seed_list(items: list[str]) -> list[int]:
+    """Seeds from items such as "0-17" and "20", in order, each once."""
+    out: list[int] = []
+    for it in items:
+        a, _, b = it.partition("-")
+        out += list(range(int(a), int(b) + 1)) if b else [int(a)]
+    return list(dict.fromkeys(out))

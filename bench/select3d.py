@@ -24,17 +24,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import ROOT, Results  # noqa: E402  (same folder)
+from common import ROOT, Results, seed_list  # noqa: E402  (same folder)
 
 GRID = ["0:0", "0:8", "0:16", "0:32", "0.02:0", "0.05:0", "0.1:0", "0.05:16", "0.1:16"]
-
-
-def _seeds(items: list[str]) -> list[int]:
-    out: list[int] = []
-    for it in items:
-        a, _, b = it.partition("-")
-        out += list(range(int(a), int(b or a) + 1))
-    return out
 
 
 def measure(scene: Path, work: Path, config: Path, grid: list[str]) -> dict:
@@ -93,7 +85,7 @@ def main() -> None:
     ap.add_argument("--config", type=Path, default=ROOT / "configs" / "accuracy.toml")
     args = ap.parse_args()
     res = Results(args.work / "select3d.json")
-    for seed in _seeds(args.seeds):
+    for seed in seed_list(args.seeds):
         name = f"{args.preset}_s{seed}"
         have = res.get(name, {})
         if have and all(o in v for v in have.values() for o in args.grid):
@@ -101,7 +93,7 @@ def main() -> None:
         res[name] = measure(args.data / name, args.work, args.config, args.grid)
         res.save()
         print(name, "measured", flush=True)
-    names = [f"{args.preset}_s{s}" for s in _seeds(args.seeds)]
+    names = [f"{args.preset}_s{s}" for s in seed_list(args.seeds)]
     base_opt = args.grid[0]
     base = {(n, t): v[base_opt]["share"] for n in names for t, v in res[n].items()}
     print(f"seeds {args.seeds}: {len(base)} (seed, query) clusters")
