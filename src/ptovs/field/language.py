@@ -414,6 +414,19 @@ def data_init(store: ViewStore, n_channels: int) -> Tensor:
     return unit.reshape(n, n_channels)
 
 
+def untrained(stop: str, seconds: float) -> tuple[dict, dict[str, list[float]]]:
+    """(metrics, history) of codes set without the optimiser (the lifts), in the
+    layout `train_male` returns."""
+    metrics = {
+        "iterations": 0,
+        "epochs": 0.0,
+        "stop": stop,
+        "train_seconds": round(seconds, 2),
+        "ms_per_iteration": 0.0,
+    }
+    return metrics, {"epoch_loss": [], "epoch_seconds": []}
+
+
 def train_male(
     store: ViewStore,
     n_channels: int,
@@ -441,15 +454,10 @@ def train_male(
     if config.mode == "lift-codes":
         t0 = time.perf_counter()
         f = data_init(store, n_channels)
-        seconds = time.perf_counter() - t0
-        metrics = {
-            "iterations": 0,
-            "epochs": 0.0,
-            "stop": "lift-codes: blend-weighted mean target code per Gaussian",
-            "train_seconds": round(seconds, 2),
-            "ms_per_iteration": 0.0,
-        }
-        return f, metrics, {"epoch_loss": [], "epoch_seconds": []}
+        return f, *untrained(
+            "lift-codes: blend-weighted mean target code per Gaussian",
+            time.perf_counter() - t0,
+        )
     if config.mode != "optimise":
         raise ValueError(
             f"mode must be 'optimise' or 'lift-codes' here, not {config.mode!r} "
@@ -585,4 +593,5 @@ __all__ = [
     "slot_scale",
     "train_male",
     "train_step",
+    "untrained",
 ]

@@ -62,6 +62,7 @@ from ptovs.field.language import (
     normalize_chunks,
     prepare_view,
     train_male,
+    untrained,
 )
 from ptovs.field.render import WildField
 from ptovs.nets.autoencoder import load_autoencoder
@@ -84,13 +85,11 @@ class Config:
     """Slots trained: the original and every novel render ("all"), or the original
     only ("orig": LangSplat's single-appearance field)."""
     mode: Literal["optimise", "lift", "lift-codes"] = "optimise"
-    """How codes are fitted. "optimise": Adam on the loss (the paper); "lift-codes":
-    no training, each
-    Gaussian's code is its blend- and mask-weighted mean target code over the
-    train views (normalize(Σ_v W_vᵀ (m ⊙ G_v)), the optimiser's data init), in
-    one sparse pass (`--variant lift-codes`); "lift": the same weighted mean taken
-    over the 512-d segment features, normalised and encoded by the AE
-    (`--variant lift`)."""
+    """How codes are fitted. "optimise": Adam on the loss (the paper); "lift": no
+    training, each Gaussian's blend- and mask-weighted mean 512-d segment feature
+    over the train views, normalised and encoded by the AE (`--variant lift`);
+    "lift-codes": the same mean over the 3-d target codes, normalize(Σ_v W_vᵀ
+    (m ⊙ G_v)), which is the optimiser's data init (`--variant lift-codes`)."""
     loss_variant: Literal["paper", "code"] = "paper"
     use_ut: bool = True
     """Weight by (1 − U_T); off = factor 1 (Table 3 ablations)."""
@@ -225,15 +224,11 @@ def _encode_lift(lift: torch.Tensor, ae: Artifact) -> tuple[torch.Tensor, dict, 
             if hit.any():
                 part = x[sl][hit] / norm[sl][hit, None]
                 codes[start : start + len(hit)][hit] = model.encode(part)
-    metrics = {
-        "iterations": 0,
-        "epochs": 0.0,
-        "stop": "lift: weighted mean segment feature per Gaussian, encoded",
-        "train_seconds": round(time.perf_counter() - t0, 2),
-        "ms_per_iteration": 0.0,
-    }
     f = codes.reshape(n, n_lv * n_app * CODE_DIM)
-    return f, metrics, {"epoch_loss": [], "epoch_seconds": []}
+    return f, *untrained(
+        "lift: weighted mean segment feature per Gaussian, encoded",
+        time.perf_counter() - t0,
+    )
 
 
 def run(inputs: Inputs, config: Config, ckpt: Checkpoint | None = None) -> dict:
