@@ -614,6 +614,28 @@ def test_langsplat_variants_through_the_cli(trained):
         assert ae.inputs.keys() == {"features"}  # no uncertainty input
 
 
+def test_paper_variant_is_the_default_but_the_papers_ae_weighting(trained):
+    """`--variant paper` keeps the paper's text: the chain before issue 22, whose
+    one changed default is the AE weighting. Everything upstream is reused; its
+    train-ae config differs from the default's in `weighting` alone."""
+    work, data, _ = trained
+    default = run_cli(work, "train", "--data", str(data))
+    paper = run_cli(work, "train", "--variant", "paper", "--data", str(data))
+    for stage in ("reconstruct", "render-appearances", "extract-features", "uncertainty"):
+        assert f"{stage:<20} cached" in paper, paper
+        assert _path_of(paper, stage) == _path_of(default, stage)
+    assert f"{'train-ae':<20} done" in paper
+    with Artifact(_path_of(default, "train-ae")) as a, \
+            Artifact(_path_of(paper, "train-ae")) as b:  # fmt: skip
+        assert a.config["weighting"] == "loss_only"
+        assert b.config["weighting"] == "input_and_target"
+        assert {k: v for k, v in a.config.items() if k != "weighting"} == {
+            k: v for k, v in b.config.items() if k != "weighting"
+        }
+        code_a, code_b = (np.asarray(x[x.names()[0]]["code_orig"]) for x in (a, b))
+        assert np.isfinite(code_b).all() and not np.array_equal(code_a, code_b)
+
+
 def test_train_rejects_unknown_stage_in_set(trained):
     work, data, _ = trained
     res = CliRunner().invoke(
