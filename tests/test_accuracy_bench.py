@@ -58,7 +58,10 @@ def test_killed_run_resumes_without_redoing_finished_seeds(tmp_path: Path) -> No
     both = first.read_bytes(), (work / "results" / "tiny_s1.json").read_bytes()
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stdout + res.stderr
-    assert (first.read_bytes(), (work / "results" / "tiny_s1.json").read_bytes()) == both
+    assert (
+        first.read_bytes(),
+        (work / "results" / "tiny_s1.json").read_bytes(),
+    ) == both
     # a label stored under another artifact key (a changed default, say) is stale:
     # the next run drops and remeasures it, and drops labels it no longer knows
     s0 = json.loads(both[0])
@@ -71,7 +74,9 @@ def test_killed_run_resumes_without_redoing_finished_seeds(tmp_path: Path) -> No
     assert res.returncode == 0, res.stdout + res.stderr
     again = json.loads(first.read_text())
     assert set(again["labels"]) == {"2d"} and again["labels"]["2d"]["key"] == key
-    assert again["labels"]["2d"]["pairs"] == json.loads(both[0])["labels"]["2d"]["pairs"]
+    assert (
+        again["labels"]["2d"]["pairs"] == json.loads(both[0])["labels"]["2d"]["pairs"]
+    )
 
 
 def _fake(seed: int, scores: dict[str, dict[str, list[float]]]) -> dict:

@@ -621,7 +621,12 @@ def test_paper_variant_is_the_default_but_the_papers_ae_weighting(trained):
     work, data, _ = trained
     default = run_cli(work, "train", "--data", str(data))
     paper = run_cli(work, "train", "--variant", "paper", "--data", str(data))
-    for stage in ("reconstruct", "render-appearances", "extract-features", "uncertainty"):
+    for stage in (
+        "reconstruct",
+        "render-appearances",
+        "extract-features",
+        "uncertainty",
+    ):
         assert f"{stage:<20} cached" in paper, paper
         assert _path_of(paper, stage) == _path_of(default, stage)
     assert f"{'train-ae':<20} done" in paper
