@@ -100,3 +100,15 @@ def seed_list(items: list[str]) -> list[int]:
         a, _, b = it.partition("-")
         out += list(range(int(a), int(b) + 1)) if b else [int(a)]
     return list(dict.fromkeys(out))
+
+
+def instrument_chain(scene: Path, work: Path, config: Path, variant: str = "male"):
+    """The accuracy instrument's chain of `variant` on `scene` (bench/accuracy.py's
+    layout: artifacts under <work>/runs, its config file). Its keys say whether a
+    result measured earlier still describes today's code and config."""
+    from ptovs.config import load_config
+    from ptovs.stage import Chain, RunContext, resolve_scene
+    from ptovs.variants import variant_sets
+
+    ctx = RunContext(work / "runs", load_config(config))
+    return Chain(ctx, resolve_scene(ctx, None, scene), variant_sets(variant))

@@ -8,7 +8,8 @@ surface sample, `ptovs.synthetic.generate.nearest_parts`), under a grid of
     python bench/select3d.py --seeds 9-17 --grid 0:0 0.05:16   # test seeds: report
 
 Reads the chains `bench/accuracy.py` trained (<work>/runs, configs/accuracy.toml);
-builds what is missing. Writes <work>/select3d.json and prints, per option pair, the
+builds what is missing. Writes <work>/select3d.json (each seed under its query
+artifact key: a seed measured on another chain is measured again) and prints, per option pair, the
 mean share over (seed, query), its cluster-bootstrap CI, the paired difference to
 no gate and no smoothing, and the mean number selected.
 """
@@ -24,24 +25,21 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import ROOT, Results, seed_list  # noqa: E402  (same folder)
+from common import ROOT, Results, instrument_chain, seed_list  # noqa: E402
 
 GRID = ["0:0", "0:8", "0:16", "0:32", "0.02:0", "0.05:0", "0.1:0", "0.05:16", "0.1:16"]
 
 
-def measure(scene: Path, work: Path, config: Path, grid: list[str]) -> dict:
+def measure(chain, scene: Path, grid: list[str]) -> dict:
     """{text: {option: {share, selected}}} on one scene's full-method chain."""
     import torch
 
     from ptovs.apps import close_inputs
-    from ptovs.config import load_config
     from ptovs.field.query import Querier, SelectOptions
-    from ptovs.stage import Chain, RunContext, execute, resolve_scene
+    from ptovs.stage import execute
     from ptovs.synthetic.generate import nearest_parts
 
     torch.set_num_threads(1)
-    ctx = RunContext(work / "runs", load_config(config))
-    chain = Chain(ctx, resolve_scene(ctx, None, scene))
     for st in chain.closure("train-male"):
         execute(chain, st).close()
     truth = json.loads((scene / "synthetic/truth/parts.json").read_text())
@@ -87,15 +85,20 @@ def main() -> None:
     res = Results(args.work / "select3d.json")
     for seed in seed_list(args.seeds):
         name = f"{args.preset}_s{seed}"
+        chain = instrument_chain(args.data / name, args.work, args.config)
         have = res.get(name, {})
-        if have and all(o in v for v in have.values() for o in args.grid):
+        if have.get("key") == chain.key("query") and all(
+            o in v for v in have["queries"].values() for o in args.grid
+        ):
             continue
-        res[name] = measure(args.data / name, args.work, args.config, args.grid)
+        queries = measure(chain, args.data / name, args.grid)
+        res[name] = {"key": chain.key("query"), "queries": queries}
         res.save()
         print(name, "measured", flush=True)
     names = [f"{args.preset}_s{s}" for s in seed_list(args.seeds)]
     base_opt = args.grid[0]
-    base = {(n, t): v[base_opt]["share"] for n in names for t, v in res[n].items()}
+    per = {n: res[n]["queries"] for n in names}
+    base = {(n, t): v[base_opt]["share"] for n in names for t, v in per[n].items()}
     print(f"seeds {args.seeds}: {len(base)} (seed, query) clusters")
     print(
         "| visibility:k | share on the part [95 % CI] | Δ vs "
@@ -104,8 +107,8 @@ def main() -> None:
     )
     print("|---|---|---|---|")
     for opt in args.grid:
-        cm = {(n, t): v[opt]["share"] for n in names for t, v in res[n].items()}
-        sel = np.mean([v[opt]["selected"] for n in names for v in res[n].values()])
+        cm = {(n, t): v[opt]["share"] for n in names for t, v in per[n].items()}
+        sel = np.mean([v[opt]["selected"] for n in names for v in per[n].values()])
         m = bootstrap_mean(np.array(list(cm.values())))
         d = paired_difference(cm, base)
         print(f"| {opt} | {m.mean:.3f} [{m.lo:.3f}, {m.hi:.3f}] | "

@@ -505,7 +505,9 @@ def chain_options(
                 type=click.Choice(list(VARIANTS)),
                 default=None if many else "male",
                 show_default=not many,
-                help="Which recipe: male (the paper's MALE-GS); langsplat "
+                help="Which recipe: male (the paper's MALE-GS, with the authors' "
+                "code's AE weighting); paper (the paper's text exactly); lift (no "
+                "optimiser: each Gaussian's weighted mean feature); langsplat "
                 "(LangSplat's: one appearance, originals only, no uncertainty, on "
                 "plain-3DGS geometry); langsplat-wild (that recipe on the "
                 "in-the-wild geometry); a Table 3 ablation or an iteration budget "
