@@ -50,13 +50,35 @@ class LazyGroup(click.Group):
         return None
 
     def invoke(self, ctx: click.Context) -> object:
+        """Errors a user can cause become one-line messages (exit 1); `-vv` shows
+        the traceback as well."""
         try:
             return super().invoke(ctx)
         except (InputError, MissingInputError) as exc:
+            if _TRACEBACKS:
+                log.debug("traceback", exc_info=True)
             raise click.ClickException(str(exc)) from None
+        except OSError as exc:  # permission, full disk, a folder in the way, ...
+            if _TRACEBACKS:
+                log.debug("traceback", exc_info=True)
+            from ptovs.outputs import describe_os_error
+
+            raise click.ClickException(describe_os_error(exc)) from None
+        except MemoryError:
+            if _TRACEBACKS:
+                log.debug("traceback", exc_info=True)
+            raise click.ClickException(
+                "out of memory; lower the sizes given (--size, --images, "
+                "scene.downscale) or free memory (run with -vv for the traceback)"
+            ) from None
+
+
+_TRACEBACKS = False  # set by -vv: errors mapped to messages also log their traceback
 
 
 def _setup_logging(verbose: int, quiet: int) -> None:
+    global _TRACEBACKS
+    _TRACEBACKS = verbose >= 2
     level = logging.INFO - 10 * verbose + 10 * quiet
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("ptovs: %(message)s"))
@@ -244,8 +266,10 @@ def export_ply(
     into the SH, so any 3DGS viewer shows it.
     """
     from ptovs.field.export import export_field_ply
+    from ptovs.outputs import check_outputs
     from ptovs.stage import Chain
 
+    check_outputs({"--out": out}, suffix=".ply")
     ref = resolve_scene(obj, scene_name, data)
     chain = Chain(obj, ref)
     art = chain.inputs_of("reconstruct")
@@ -319,8 +343,10 @@ def export_features(
     """
     from ptovs.artifacts import read_json_dataset
     from ptovs.features import SegmentFeatures, langsplat_suffix, write_langsplat
+    from ptovs.outputs import check_output_dir
     from ptovs.stage import Chain
 
+    check_output_dir("--out", out)
     ref = resolve_scene(obj, scene_name, data)
     art = Chain(obj, ref).inputs_of("extract-features")
     try:

@@ -9,3 +9,10 @@ class InputError(ValueError):
 
 class MissingInputError(FileNotFoundError):
     """A required file or folder is absent: the message names it and the fix."""
+
+
+class UnknownImageError(InputError, KeyError):
+    """An image name the scene or field does not have (e.g. `--image`)."""
+
+    def __str__(self) -> str:  # KeyError would quote the message
+        return str(self.args[0]) if self.args else ""

@@ -550,12 +550,34 @@ def variant_chain(
     return Chain(ctx, ref, variant_sets(variant, split)), ref
 
 
+def _scene_name(name: str, data: Path | None) -> tuple[str, Path | None]:
+    """`--scene` is a name: it names the scene's folder under the work dir, so a
+    path there would write outside it. A path to a folder given without --data is
+    taken as --data (the scene named by the folder); anything else with a path
+    separator, or "." / "..", is refused with the command to use."""
+    if name and "/" not in name and "\\" not in name and name not in (".", ".."):
+        return name, data
+    path = Path(name).expanduser()
+    if data is None and path.is_dir():
+        resolved = path.resolve()
+        log.info("--scene %s is a folder: taken as --data %s (scene %s)",
+                 name, path, resolved.name)  # fmt: skip
+        return resolved.name, path
+    hint = Path(name).name or "myscene"
+    raise InputError(
+        f"--scene takes a name, not a path ({name!r}); give the folder as --data: "
+        f"--data {name} [--scene {hint}]"
+    )
+
+
 def scene_source(
     scene_name: str | None, data: Path | None
 ) -> tuple[str, Path, Path | None]:
     """(scene name, --data folder, its photo folder if it holds unposed photos)."""
     if scene_name is None and data is None:
         raise click.UsageError("give --scene NAME and/or --data FOLDER")
+    if scene_name is not None:
+        scene_name, data = _scene_name(scene_name, data)
     if data is None:
         data = Path(os.environ.get("PTOVS_DATA", "data")) / scene_name
     if scene_name is None:
@@ -655,6 +677,10 @@ def stage_command(
         **extra: Any,
     ) -> None:
         variants = extra.pop("variants", None) or (extra.pop("variant", "male"),)
+        if extra.get("out") is not None:  # an output folder: checked before any work
+            from ptovs.outputs import check_output_dir
+
+            check_output_dir("--out", extra["out"])
         ctx = obj
         if extras.overrides is not None:
             over = extras.overrides(extra)

@@ -18,7 +18,9 @@ bar under the frame. Written with OpenCV's VideoWriter (mp4v), atomically.
 from __future__ import annotations
 
 import json
+import os
 import time
+from contextlib import ExitStack
 from pathlib import Path
 
 import click
@@ -28,6 +30,7 @@ import torch
 
 from ptovs.apps import close_inputs, trained_chain
 from ptovs.errors import InputError
+from ptovs.outputs import OutputError, check_outputs, output_file, write_text_output
 from ptovs.raster import Camera
 from ptovs.stage import RunContext, chain_options
 
@@ -190,33 +193,88 @@ def roam_frames(
         close_inputs(inputs)
 
 
-def write_video(path: Path, frames, fps: float) -> int:
-    """Write BGR frames to `path` (mp4v) through a temporary file; returns the count."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    writer = None
-    n = 0
+MAX_SIDE = 8192  # pixels a side of a frame (--size)
+MAX_FRAMES = 100_000  # --frames: over an hour at 25 frames/s
+# bytes of memory per frame pixel while rendering and highlighting, generous:
+# the selection renders 4 channels; a 2-D query per frame decodes every level
+# and appearance at every pixel
+BYTES_PER_PIXEL = {"select": 256, "query": 4096}
+VIDEO_BYTES_PER_PIXEL = 0.5  # mp4v at OpenCV's default quality, generous
+
+
+def check_frame_size(width: int, height: int, frames: int, mode: str) -> None:
+    """Refuse sizes that cannot be rendered here, before any work: each side at
+    most MAX_SIDE, frames at most MAX_FRAMES, the frame's working memory within
+    half of the memory available now."""
+    if max(width, height) > MAX_SIDE:
+        raise click.BadParameter(f"{width}x{height}: each side at most {MAX_SIDE} "
+                                 "pixels", param_hint="--size")  # fmt: skip
+    if frames > MAX_FRAMES:
+        raise click.BadParameter(
+            f"{frames}: at most {MAX_FRAMES}", param_hint="--frames"
+        )
+    need = width * height * BYTES_PER_PIXEL[mode]
     try:
-        for frame in frames:
-            if writer is None:
-                h, w = frame.shape[:2]
-                writer = cv2.VideoWriter(
-                    str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h)
-                )
-                if not writer.isOpened():
-                    raise InputError(
-                        f"roam: OpenCV cannot write {path.suffix} video here; try --out tour.avi"
-                    )
-            writer.write(frame)
-            n += 1
-    finally:
-        if writer is not None:
-            writer.release()
-    if n == 0:
-        tmp.unlink(missing_ok=True)
-        raise InputError("roam: no frames rendered")
-    tmp.replace(path)
-    return n
+        avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):  # pragma: no cover (not POSIX)
+        return
+    if need > avail // 2:
+        raise click.BadParameter(
+            f"{width}x{height} needs about {need / 2**30:.1f} GB to render "
+            f"({BYTES_PER_PIXEL[mode]} bytes a pixel with --highlight {mode}); "
+            f"{avail / 2**30:.1f} GB is available, so at most half of that is used. "
+            "Choose a smaller size",
+            param_hint="--size",
+        )
+
+
+def write_video(path: Path, frames, fps: float) -> int:
+    """Write BGR frames to `path` (mp4v) through a temporary file, read it back
+    (frame count and size: OpenCV does not report failed writes, so a full disk
+    would leave a truncated video), then rename it into place; returns the count."""
+    written = {"n": 0, "size": (0, 0)}
+
+    def verify(tmp: Path) -> None:
+        cap = cv2.VideoCapture(str(tmp))
+        got, size = 0, None
+        try:
+            while True:
+                ok, frame = cap.read()
+                if not ok:
+                    break
+                got, size = got + 1, tuple(frame.shape[1::-1])
+        finally:
+            cap.release()
+        if got != written["n"] or size != written["size"]:
+            raise OutputError(
+                f"{path}: the video written reads back as {got} of {written['n']} "
+                "frames; is the disk full? Free space or write elsewhere"
+            )
+
+    writer = None
+    with ExitStack() as stack:
+        try:
+            for frame in frames:
+                if writer is None:
+                    h, w = frame.shape[:2]
+                    written["size"] = (w, h)
+                    tmp = stack.enter_context(output_file(path, verify))
+                    fourcc = cv2.VideoWriter_fourcc(*"mp4v")
+                    writer = cv2.VideoWriter(str(tmp), fourcc, fps, (w, h))
+                    if not writer.isOpened():
+                        raise OutputError(
+                            f"roam: OpenCV cannot open a {path.suffix or 'suffix-less'} "
+                            f"video at {path}; check the folder is writable, or try "
+                            "an .mp4 or .avi name"
+                        )
+                writer.write(frame)
+                written["n"] += 1
+        finally:
+            if writer is not None:
+                writer.release()  # before output_file verifies and renames
+        if writer is None:
+            raise InputError("roam: no frames rendered")
+    return written["n"]
 
 
 @click.command(name="roam")
@@ -256,8 +314,6 @@ def command(
     Runs any missing stage of the chain first; writes the video and <out>.json
     (frames, size, frames per second of rendering).
     """
-    from ptovs.artifacts import write_atomic
-
     try:
         width, height = (int(x) for x in size.lower().split("x"))
         if width < 8 or height < 8:
@@ -265,6 +321,11 @@ def command(
     except ValueError:
         raise click.BadParameter(f"{size!r}: write WIDTHxHEIGHT, e.g. 320x240",
                                  param_hint="--size") from None  # fmt: skip
+    check_frame_size(width, height, frames, mode)
+    record_path = out.with_suffix(".json")
+    check_outputs({"--out": out, f"the record beside --out ({record_path.name})": record_path},
+                  need_bytes=int(width * height * frames * VIDEO_BYTES_PER_PIXEL),
+                  suffix=".mp4")  # fmt: skip
     chain, ref = trained_chain(obj, scene_name, data, variant, sets)
     scene = ref.load()
     target = np.median(scene.points_xyz, 0) if len(scene.points_xyz) else np.zeros(3)
@@ -291,6 +352,6 @@ def command(
         "setup_s": round(stamps[1] - stamps[0], 2), "render_fps": round(steady, 2),
         "video": str(out),
     }  # fmt: skip
-    write_atomic(out.with_suffix(".json"), json.dumps(record, indent=1))
+    write_text_output(record_path, json.dumps(record, indent=1))
     click.echo(f"roam {text!r}: {n} frames {width}x{height + bar}, {steady:.1f} frames/s "
                f"after {record['setup_s']:.1f} s of setup -> {out}")  # fmt: skip

@@ -108,7 +108,12 @@ def command(
     count, level and score. Runs any missing stage of the chain first.
     """
     from ptovs.field.export import export_field_ply
+    from ptovs.outputs import check_outputs, write_text_output
 
+    record_path = out.with_suffix(".json")
+    check_outputs({"--out": out, "--rest": rest,
+                   f"the record beside --out ({record_path.name})": record_path},
+                  suffix=".ply")  # fmt: skip
     chain, ref = trained_chain(obj, scene_name, data, variant, sets)
     t0 = time.perf_counter()
     options = SelectOptions(min_opacity, min_visibility, smooth)
@@ -130,8 +135,6 @@ def command(
             export_field_ply(
                 inputs.reconstruct, rest, image=image, index=~sel.mask, field=field
             )
-        from ptovs.artifacts import write_atomic
-
         record = {
             "scene": ref.name,
             "text": text,
@@ -144,7 +147,7 @@ def command(
             "ply": str(out),
             "rest": str(rest) if rest else None,
         }
-        write_atomic(out.with_suffix(".json"), json.dumps(record, indent=1))
+        write_text_output(record_path, json.dumps(record, indent=1))
     finally:
         close_inputs(inputs)
     click.echo(

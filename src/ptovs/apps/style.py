@@ -207,8 +207,11 @@ def command(
     Runs any missing stage of the chain first.
     """
     from ptovs.artifacts import write_atomic
+    from ptovs.outputs import check_output_dir
     from ptovs.visual import heatmap, slug, write_png
 
+    if out is not None:
+        check_output_dir("--out", out)
     chain, ref = trained_chain(obj, scene_name, data, variant, sets)
     scene = ref.load()
     if candidates:

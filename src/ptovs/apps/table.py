@@ -93,6 +93,12 @@ def command(obj: RunContext, data: Path, variants: tuple[str, ...], out: Path | 
 
     if not data.is_dir():
         raise click.BadParameter(f"{data} is not a folder", param_hint="--data")
+    if out is not None:
+        from ptovs.outputs import check_outputs
+
+        check_outputs({"--out": out, f"the record beside --out "
+                       f"({out.with_suffix('.json').name})": out.with_suffix(".json")},
+                      suffix=".md")  # fmt: skip
     if not scene_folders(data):
         raise click.ClickException(f"no scene folders under {data}")
     rows, failures = collect(obj, data, variants)

@@ -44,10 +44,21 @@ def write_ply(
         data[name] = np.asarray(values, np.float32)
     if not all(np.isfinite(data[name]).all() for name, _ in cols):
         raise ValueError("refusing to write non-finite Gaussian parameters to a PLY")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    PlyData([PlyElement.describe(data, "vertex")], text=False).write(str(tmp))
-    tmp.replace(path)
+    from ptovs.outputs import OutputError, output_file
+
+    def verify(tmp: Path) -> None:  # read back: a full disk can truncate silently
+        try:
+            back = PlyData.read(str(tmp))["vertex"].count
+        except (OSError, ValueError, KeyError, IndexError, PlyParseError):
+            back = -1
+        if back != n:
+            raise OutputError(
+                f"{path}: the PLY written does not read back ({n} Gaussians "
+                "written); is the disk full?"
+            )
+
+    with output_file(path, verify) as tmp:
+        PlyData([PlyElement.describe(data, "vertex")], text=False).write(str(tmp))
     return path
 
 

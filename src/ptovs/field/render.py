@@ -121,8 +121,13 @@ class WildField:
         for name in names:
             key = name if name in self.embeddings else stems.get(name)
             if key is None:
+                from ptovs.errors import UnknownImageError
+
                 some = ", ".join(list(self.embeddings)[:4])
-                raise KeyError(f"no embedding for image {name!r} (have e.g. {some})")
+                raise UnknownImageError(
+                    f"no train image {name!r} in this field (have e.g. {some}); "
+                    "--image takes one of the scene's train image names"
+                )
             out.append(self.embeddings[key])
         return torch.stack(out)
 
