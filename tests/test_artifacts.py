@@ -129,6 +129,38 @@ def test_corrupt_artifact_is_detected(tmp_path: Path, damage: str):
     assert not path.exists() and path.with_name(path.name + ".corrupt").exists()
 
 
+@pytest.mark.parametrize("attr", ["key", "config_json", "inputs_json", "stage"])
+def test_changed_identity_attributes_are_corruption(tmp_path: Path, attr: str):
+    """Key, config and inputs are under the identity digest: changed by hand, the
+    artifact is moved aside like a failed checksum, and `exists` (what `status`
+    reads) no longer says done. Timings are not: they may change freely."""
+    store = Store(tmp_path)
+    key = "34" * 32
+    path = _write(store, key, {"v": np.ones(3, np.float32)}).path
+    with h5py.File(path, "a") as h5:
+        h5.attrs["timings_json"] = '{"run_s": 99}'
+    assert store.exists("sc", "st", key)
+    art = store.lookup("sc", "st", key)
+    assert art is not None
+    art.close()
+    with h5py.File(path, "a") as h5:
+        h5.attrs[attr] = ("56" * 32) if attr == "key" else '{"tampered": 1}'
+    assert not store.exists("sc", "st", key)
+    assert store.lookup("sc", "st", key) is None
+    assert not path.exists() and path.with_name(path.name + ".corrupt").exists()
+
+
+def test_an_artifact_under_another_keys_name_is_moved_aside(tmp_path: Path):
+    store = Store(tmp_path)
+    a, b = "78" * 32, "9a" * 32
+    src = _write(store, a, {"v": np.ones(3, np.float32)}).path
+    dst = store.path("sc", "st", b)
+    src.rename(dst)  # copied or renamed by hand
+    assert not store.exists("sc", "st", b)
+    assert store.lookup("sc", "st", b) is None  # no RuntimeError
+    assert dst.with_name(dst.name + ".corrupt").exists()
+
+
 def test_partial_write_resumes_and_discards_damage(tmp_path: Path):
     store = Store(tmp_path)
     key = "34" * 32

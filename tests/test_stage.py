@@ -142,6 +142,24 @@ def test_status_reports_done_missing_stale(env):
     )
 
 
+def test_status_says_corrupt_when_an_artifacts_identity_was_changed(env):
+    import h5py
+
+    invoke, data = env["invoke"], str(env["data"])
+    invoke("toy-views", "--data", data)
+    (path,) = _h5(env["work"], "toy-views")
+    with h5py.File(path, "a") as h5:
+        h5.attrs["config_json"] = '{"gain": 7}'
+    line = next(ln for ln in invoke("status", "--data", data).output.splitlines()
+                if ln.strip().startswith("toy-views"))  # fmt: skip
+    assert "corrupt" in line and "run: ptovs toy-views" in line
+    invoke("toy-views", "--data", data)  # moved aside and recomputed
+    assert path.with_name(path.name + ".corrupt").exists()
+    line = next(ln for ln in invoke("status", "--data", data).output.splitlines()
+                if ln.strip().startswith("toy-views"))  # fmt: skip
+    assert "done" in line
+
+
 def test_corrupt_artifact_is_recomputed(env):
     invoke, calls, data = env["invoke"], env["calls"], str(env["data"])
     invoke("toy-views", "--data", data)

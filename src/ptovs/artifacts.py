@@ -259,6 +259,18 @@ class Artifact:
             raise CorruptArtifact(
                 f"{self.path}: data_sha256 mismatch (datasets missing?)"
             )
+        self.verify_identity()
+
+    def verify_identity(self) -> None:
+        """The identity attributes (stage, key, config, inputs, data digest) against
+        `identity_sha256` (cheap: no data read). Artifacts written before it
+        existed have none and pass."""
+        want = self.attrs.get("identity_sha256")
+        if want is not None and want != _identity(self.attrs):
+            raise CorruptArtifact(
+                f"{self.path}: its key, config or inputs were changed after writing "
+                "(identity_sha256 mismatch)"
+            )
 
     def names(self) -> list[str]:
         if "views" not in self._h5:
@@ -323,6 +335,16 @@ def _walk(h5: h5py.Group) -> Iterator[tuple[str, h5py.Dataset]]:
 
 def _combined(records: list[str]) -> str:
     return hashlib.sha256("\n".join(sorted(records)).encode()).hexdigest()
+
+
+IDENTITY_ATTRS = ("stage", "key", "config_json", "inputs_json", "data_sha256")
+"""What an artifact is, besides its data: covered by `identity_sha256`. Provenance
+and timings are not (a rerun of the same key may differ there)."""
+
+
+def _identity(attrs: Mapping[str, Any]) -> str:
+    parts = [f"{k}={attrs.get(k, '')}" for k in IDENTITY_ATTRS]
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()
 
 
 class ArtifactWriter:
@@ -408,6 +430,7 @@ class ArtifactWriter:
             attrs["format"] = FORMAT
             attrs["n_views"] = len(self.done_views())
             attrs["data_sha256"] = _combined(records)
+            attrs["identity_sha256"] = _identity(attrs)
             for k, v in attrs.items():
                 # str subclasses (torch's TorchVersion) would become numpy '<U' arrays
                 out.attrs[k] = str(v) if isinstance(v, str) else v
@@ -513,14 +536,18 @@ class Store:
             return None
         try:
             art = Artifact(path)
+            if art.key != key:  # renamed or copied by hand (a 12-character prefix
+                art.close()  # collision is astronomically rare)
+                raise CorruptArtifact(
+                    f"{path} holds key {art.key[:SHORT]}…, not {key[:SHORT]}…"
+                )
         except CorruptArtifact as exc:
             bad = path.with_name(path.name + ".corrupt")
-            log.warning("%s; moved to %s and it will be recomputed", exc, bad.name)
+            log.warning(
+                "%s; moved to %s: run the stage again to recompute it", exc, bad.name
+            )
             os.replace(path, bad)
             return None
-        if art.key != key:  # a 12-character prefix collision: astronomically rare
-            art.close()
-            raise RuntimeError(f"{path} holds key {art.key}, expected {key}")
         return art
 
     def exists(self, scene: str, stage: str, key: str) -> bool:
@@ -529,8 +556,9 @@ class Store:
         if not path.exists():
             return False
         try:
-            Artifact(path, verify=False).close()
-            return True
+            with Artifact(path, verify=False) as art:
+                art.verify_identity()
+                return art.key == key
         except CorruptArtifact:
             return False
 

@@ -319,10 +319,17 @@ class Chain:
         return art
 
     def state(self, stage: str) -> tuple[str, str]:
-        """(state, detail) for `ptovs status`: done, partial, missing or stale."""
+        """(state, detail) for `ptovs status`: done, corrupt, partial, missing or
+        stale."""
         store, key = self.ctx.store, self.key(stage)
         if store.exists(self.scene.name, stage, key):
             return "done", str(store.path(self.scene.name, stage, key))
+        path = store.path(self.scene.name, stage, key)
+        if path.exists():  # there, but incomplete, unreadable or not what its name says
+            return "corrupt", (
+                f"{path.name} is damaged or holds another key (moved aside when "
+                f"next read); run: {self.hint(stage)}"
+            )
         n = store.partial_views(self.scene.name, stage, key)
         if n:
             return "partial", f"{n} views stored; rerun to resume"
