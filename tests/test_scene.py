@@ -734,6 +734,26 @@ def test_label_errors(labelled):
         load_labels(scene, scene.views[1])
 
 
+def test_label_vertices_far_outside_are_refused_near_ones_clipped(labelled, caplog):
+    """Vertices of 1e30 were accepted (a numpy cast warning, minutes of filling, a
+    different mIoU); a polygon reaching just past the border is clipped, with a
+    warning that names the file (issue 23)."""
+    scene, labels = labelled
+    v = scene.views[0]
+    path = labels / f"{v.stem}.json"
+    for far in ([[0, 0], [1e30, 0], [0, 5]], [[-3 * W, 0], [5, 0], [5, 5]]):
+        write_label(path, f"{v.stem}.jpg", W, H, [("Column", far)])
+        with pytest.raises(InputError, match=f"{path.name}.*far outside"):
+            load_labels(scene, v)
+    write_label(
+        path, f"{v.stem}.jpg", W, H, [("Column", [[-5, -5], [W + 9, 0], [0, 9]])]
+    )
+    with caplog.at_level("WARNING"):
+        m = load_labels(scene, v, size=(H, W))["Column"]
+    assert m[0, 0] and m.shape == (H, W)
+    assert path.name in caplog.text and "clipped" in caplog.text
+
+
 # ------------------------------------------------------------ synthetic scene
 
 

@@ -108,6 +108,19 @@ def read_label_json(path: str | Path) -> dict[str, Any]:
             )
         if not np.all(np.isfinite(verts)):
             raise bad(f"objects[{i}] ({cat!r}) has non-finite vertices")
+        w, h = wh
+        lo, hi = verts.min(0), verts.max(0)
+        if lo[0] < -w or lo[1] < -h or hi[0] > 2 * w or hi[1] > 2 * h:
+            raise bad(
+                f"objects[{i}] ({cat!r}) has vertices far outside the {w}x{h} image "
+                f"(x {lo[0]:.4g}..{hi[0]:.4g}, y {lo[1]:.4g}..{hi[1]:.4g}); are they "
+                "pixel coordinates of this image?"
+            )
+        if lo[0] < -1 or lo[1] < -1 or hi[0] > w + 1 or hi[1] > h + 1:
+            logger.warning(
+                "label file %s: objects[%d] (%r) reaches outside the %dx%d image; "
+                "the polygon is clipped to it", path, i, cat, w, h,
+            )  # fmt: skip
         out.append((cat, verts))
     return {"name": name, "width": wh[0], "height": wh[1], "objects": out}
 
