@@ -15,9 +15,11 @@ at a time on two cores, one thread each), the instrument measures, on every
 (evaluation view, query) pair:
 
   male                the full method (ptovs defaults: the paper's method with the
-                      authors' code's AE weighting, chosen on these seeds, issue 22)
-  paper               the paper's text exactly (`--variant paper`: the AE trained
-                      on p·x, the default before issue 22)
+                      authors' code's AE weighting and the training-free lift in
+                      train-male, both chosen on these seeds, issue 22)
+  optimise            the same with train-male's optimiser (`--variant optimise`)
+  paper               the paper's text exactly (`--variant paper`: the optimiser,
+                      the AE trained on p·x; the default before issue 22)
   langsplat           LangSplat's recipe on plain-3DGS geometry
   langsplat-wild      the same recipe on the in-the-wild geometry
   oracle              the full method's language recipe on clean features: every
@@ -32,13 +34,10 @@ at a time on two cores, one thread each), the instrument measures, on every
   slot-orig, slot-nov1..3   the full method's field, one appearance slot alone
   no-multi-appearance, no-tum-aum, no-tum, no-aum, no-bg-filter, imglvlmax,
   pixmax, pixavg, pixweighted   Table 3 rows 1 and 6-13 (ptovs.variants)
-  budget-300, budget-3k         train-male at two fixed iteration budgets
+  budget-300, budget-3k         train-male's optimiser at two fixed iteration budgets
   no-uncertainty-ae, lift-codes   on request only (--labels): Table 3 row 3
-                      (train-ae unweighted), the code-space lift
-  lift                the training-free lift (`--variant lift`): the full method's
-                      inputs, each Gaussian's code the AE's code of its weighted
-                      mean segment feature (lift-codes, on request: of its mean
-                      target code)
+                      (train-ae unweighted), the code-space lift (each Gaussian's
+                      mean target code)
 
 A finished seed's pairs go to <work>/results/<scene>.json (atomically), each label
 with the artifact key of what it measured (the evaluate artifact's; for 2d/2d-ae the
@@ -78,7 +77,7 @@ VERSION = 1  # bump when what a seed's results mean changes
 CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
     "male": ("male", {}),
     "paper": ("paper", {}),
-    "lift": ("lift", {}),
+    "optimise": ("optimise", {}),
     **{
         f"slot-{a}": ("male", {"query": [f'appearances=["{a}"]']})
         for a in ("orig", "nov1", "nov2", "nov3")

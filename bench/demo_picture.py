@@ -55,14 +55,20 @@ def main() -> None:
     ap.add_argument("--query-out", type=Path,
                     default=ROOT / "work" / "tiny_s0" / "query-out" / "male")  # fmt: skip
     ap.add_argument("--view", default=None, help="image name (default: the first)")
-    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "img" / "demo_overlay.png")
+    ap.add_argument(
+        "--out", type=Path, default=ROOT / "docs" / "img" / "demo_overlay.png"
+    )
     args = ap.parse_args()
     views = sorted(p for p in args.query_out.iterdir() if p.is_dir())
     if not views:
         raise SystemExit(f"no views under {args.query_out}: run `make demo` first")
-    view = next((v for v in views if v.name == args.view), None) if args.view else views[0]
+    view = (
+        next((v for v in views if v.name == args.view), None) if args.view else views[0]
+    )
     if view is None:
-        raise SystemExit(f"no view {args.view!r}; have {', '.join(v.name for v in views)}")
+        raise SystemExit(
+            f"no view {args.view!r}; have {', '.join(v.name for v in views)}"
+        )
     pic = compose(view)
     tmp = args.out.with_name(args.out.stem + ".tmp.png")
     if not cv2.imwrite(str(tmp), pic):

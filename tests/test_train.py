@@ -299,9 +299,20 @@ def test_view_store_spills_to_disk_and_reads_back(tmp_path):
     )
 
 
-def test_male_artifact_on_tiny(trained):
-    work, _, _ = trained
-    with _art(work, "train-male") as art, _art(work, "reconstruct") as rec:
+@pytest.fixture(scope="module")
+def optimised(trained):
+    """The trained tiny chain's work dir with train-male's optimiser run as well
+    (`--variant optimise`), and the path of that train-male artifact."""
+    work, data, _ = trained
+    out = run_cli(work, "train", "--variant", "optimise", "--data", str(data))
+    assert "train-ae             cached" in out, out
+    return work, _path_of(out, "train-male")
+
+
+def test_male_artifact_on_tiny(optimised):
+    work, path = optimised
+    with Artifact(path) as art, _art(work, "reconstruct") as rec:
+        assert art.config["mode"] == "optimise"
         root = art.root()
         metrics = read_json_dataset(root["metrics_json"])
         loss = root["log_epoch_loss"]
@@ -323,17 +334,20 @@ def test_male_artifact_on_tiny(trained):
         assert np.isfinite(root["codes"]).all()
 
 
-def test_male_rendered_codes_match_targets_better_than_chance(trained):
-    """The trained field, rendered in a train view, is closer to its targets than
-    the same codes shuffled across Gaussians."""
+@pytest.mark.parametrize("mode", ["lift", "optimise"])
+def test_male_rendered_codes_match_targets_better_than_chance(trained, optimised, mode):
+    """The field (the default lift, and the optimiser's), rendered in a train view,
+    is closer to its targets than the same codes shuffled across Gaussians."""
     from ptovs.field.render import WildField
     from ptovs.raster import Camera
     from ptovs.scene import load_scene
 
     work, data, _ = trained
     scene = load_scene(data)
+    path = optimised[1] if mode == "optimise" else _path_of(trained[2], "train-male")
+    path = work / "tiny_s0" / "train-male" / path.name
     with (
-        _art(work, "train-male") as art,
+        Artifact(path) as art,
         _art(work, "reconstruct") as rec,
         _art(work, "train-ae") as ae,
         _art(work, "extract-features") as feats,
@@ -387,6 +401,8 @@ def test_killed_train_male_resumes_to_the_same_codes(
     data = str(tiny_scene_dir)
     run_cli(work, "train-ae", "--data", data)
     sets = [
+        "--set",
+        "mode=optimise",
         "--set",
         "iterations=40",
         "--set",
@@ -548,10 +564,12 @@ def test_lift_hard_cases_are_finite():
         lang.train_male(store, 18, lang.MaleConfig(mode="nope"))
 
 
-def test_lift_variant_on_tiny(trained):
-    """`--variant lift`: the full method's train-ae reused, train-male without an
-    optimiser; finite codes, unit 3-chunks where seen, same layout as the default."""
-    work, data, out = trained
+def test_lift_variant_on_tiny(trained, optimised):
+    """`--variant lift` (the default) and `lift-codes`: the full method's train-ae
+    reused, train-male without an optimiser; finite codes, unit 3-chunks where
+    seen, the optimiser's layout."""
+    work, data, _ = trained
+    out = run_cli(work, "train", "--variant", "optimise", "--data", str(data))
     lifted = run_cli(work, "train", "--variant", "lift-codes", "--data", str(data))
     assert "train-ae             cached" in lifted, lifted
     # same key (file name) as the default chain's AE; `out` ran in another work dir
@@ -574,6 +592,8 @@ def test_lift_variant_on_tiny(trained):
         cos = (codes * ref).sum(-1)[torch.from_numpy(seen)]
         assert float(cos.mean()) > 0.5
     feat = run_cli(work, "train", "--variant", "lift", "--data", str(data))
+    default = run_cli(work, "train", "--data", str(data))
+    assert _path_of(feat, "train-male") == _path_of(default, "train-male")
     with Artifact(_path_of(feat, "train-male")) as art:
         assert art.config["mode"] == "lift"
         codes, meta = load_codes(art)
