@@ -54,7 +54,6 @@ import torch
 from tqdm import tqdm
 
 from ptovs.artifacts import Artifact, Checkpoint, json_dataset, read_json_dataset
-from ptovs.errors import InputError
 from ptovs.field.language import (
     CODE_DIM,
     MaleConfig,
@@ -162,11 +161,13 @@ def prepare_views(
     apps: list[str],
     level_idx: list[int],
     config: Config,
-    store: ViewStore,
+    store: ViewStore | None,
     lift: torch.Tensor | None = None,
+    rows: tuple[int, int] | None = None,
 ) -> torch.Tensor:
-    """Blend weights and targets of every view into `store`; returns seen [P] bool.
-    With `lift` ([P, L, A, D]), also adds each view's weighted segment features to
+    """Blend weights and targets of every view into `store` (None: skipped);
+    returns seen [P] bool. With `lift` ([p1 − p0, L, A, D]), also adds each view's
+    weighted segment features of the Gaussians `rows` = (p0, p1) (default: all) to
     it (`mode = "lift"`)."""
     seen = torch.zeros(len(gaussians), dtype=torch.bool)
     for view in tqdm(
@@ -193,12 +194,14 @@ def prepare_views(
             feats = inputs.features.read(name, [f"feat_{a}" for a in apps])
             valid = np.stack([s.reshape(len(s), -1).T >= 0 for s in segs], axis=-1)
             feature_lift_sums(
-                bw.csr()[1],
+                _csr_rows(bw.csr()[1], *(rows or (0, len(gaussians)))),
                 segs,
                 [feats[f"feat_{a}"] for a in apps],
                 mask_weights(valid, u_t, u_a, config.loss_variant),
                 out=lift,
             )
+        if store is None:
+            continue
         store.add(
             prepare_view(
                 bw,
@@ -210,6 +213,13 @@ def prepare_views(
             )
         )
     return seen
+
+
+def _csr_rows(csr: tuple, p0: int, p1: int) -> tuple:
+    """Rows p0..p1 of a CSR triple (indptr, indices, values)."""
+    indptr, idx, val = csr
+    a, b = int(indptr[p0]), int(indptr[p1])
+    return indptr[p0 : p1 + 1] - indptr[p0], idx[a:b], val[a:b]
 
 
 def _encode_lift(lift: torch.Tensor, ae: Artifact) -> tuple[torch.Tensor, dict, dict]:
@@ -262,30 +272,40 @@ def run(inputs: Inputs, config: Config, ckpt: Checkpoint | None = None) -> dict:
     with tempfile.TemporaryDirectory(prefix="ptovs-male-") as tmp:
         scratch = (ckpt.folder if ckpt is not None else Path(tmp)) / "views"
         store = ViewStore(int(config.cache_mb) << 20, scratch)
-        lift = None
         if config.mode == "lift":
+            # the [P, L, A, D] sums within cache_mb: Gaussians in ranges, one pass
+            # over the views each (the first also stores the views for the loss)
             dim = int(
                 inputs.features.read(views[0].name, ["feat_orig"])["feat_orig"].shape[1]
             )
-            need = len(g) * len(levels) * len(apps) * dim * 4
-            if need > int(config.cache_mb) << 20:
-                raise InputError(
-                    f"train-male: the lift needs {need / 2**20:,.0f} MB for "
-                    f"{len(g):,} Gaussians (train-male.cache_mb = {config.cache_mb}); "
-                    "raise it (--set train-male.cache_mb=N) if the memory is there, or "
-                    "use the optimiser, which memory-maps what does not fit "
-                    "(--variant optimise)"
-                )
-            lift = torch.zeros(len(g), len(levels), len(apps), dim)
-        seen = prepare_views(inputs, views, g, apps, level_idx, config, store, lift)
+            chunk = max(
+                1, (int(config.cache_mb) << 20) // (len(levels) * len(apps) * dim * 4)
+            )
+            starts = range(0, len(g), chunk)
+            if len(starts) > 1:
+                log.info("train-male: the lift's sums exceed cache_mb = %d: %d passes "
+                         "over the views", config.cache_mb, len(starts))  # fmt: skip
+            f = torch.zeros(len(g), n_ch)
+            t_lift = time.perf_counter()
+            for i, p0 in enumerate(starts):
+                p1 = min(len(g), p0 + chunk)
+                acc = torch.zeros(p1 - p0, len(levels), len(apps), dim)
+                s = prepare_views(inputs, views, g, apps, level_idx, config,
+                                  store if i == 0 else None, acc, (p0, p1))  # fmt: skip
+                if i == 0:
+                    seen = s
+                f[p0:p1], metrics, hist = _encode_lift(acc, inputs.ae)
+                del acc
+            metrics.update(train_seconds=round(time.perf_counter() - t_lift, 3),
+                           lift_passes=len(starts))  # fmt: skip
+        else:
+            seen = prepare_views(inputs, views, g, apps, level_idx, config, store)
         log.info(
             "train-male: view data %.0f MB in RAM, %.0f MB memory-mapped",
             store.ram_bytes / 2**20,
             store.disk_bytes / 2**20,
         )
-        if lift is not None:
-            f, metrics, hist = _encode_lift(lift, inputs.ae)
-        else:
+        if config.mode != "lift":  # the optimiser, or the codes' lift
             f, metrics, hist = train_male(
                 store, n_ch, male, g, cams,
                 load=(ckpt.load if ckpt else lambda: None),
