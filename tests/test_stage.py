@@ -160,6 +160,17 @@ def test_status_says_corrupt_when_an_artifacts_identity_was_changed(env):
     assert "done" in line
 
 
+def test_missing_input_after_an_override_names_the_override(env):
+    """export-ply after `reconstruct --set iterations=400` used to say only "no
+    reconstruct artifact": the message now lists the existing artifacts' overrides."""
+    invoke, data = env["invoke"], str(env["data"])
+    invoke("toy-views", "--data", data, "--set", "gain=2")
+    res = invoke("toy-sum", "--data", data, ok=False)
+    assert res.exit_code == 1 and "Traceback" not in res.output
+    assert "made with --set toy-views.gain=2" in res.output, res.output
+    invoke("--set", "toy-views.gain=2", "toy-sum", "--data", data)  # as it says
+
+
 def test_corrupt_artifact_is_recomputed(env):
     invoke, calls, data = env["invoke"], env["calls"], str(env["data"])
     invoke("toy-views", "--data", data)

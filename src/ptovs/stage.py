@@ -281,14 +281,7 @@ class Chain:
             if up == SCENE:
                 values[name] = self.scene.load()
                 continue
-            key = self.key(up)
-            art = self.ctx.store.lookup(self.scene.name, up, key)
-            if art is None:
-                raise MissingInputError(
-                    f"no {up} artifact for {self.scene.name} (key {key[:12]}); "
-                    f"run: {self.hint(up)}"
-                )
-            values[name] = art
+            values[name] = self.inputs_of(up)
         return spec.inputs_cls(**values)
 
     def closure(self, stage: str) -> list[str]:
@@ -313,10 +306,39 @@ class Chain:
         art = self.ctx.store.lookup(self.scene.name, stage, key)
         if art is None:
             raise MissingInputError(
-                f"no {stage} artifact for {self.scene.name} (key {key[:12]}); "
-                f"run: {self.hint(stage)}"
+                f"no {stage} artifact for {self.scene.name} (key {key[:12]}) with "
+                f"this config; run: {self.hint(stage)}" + self._other_configs(stage)
             )
         return art
+
+    def _other_configs(self, stage: str) -> str:
+        """What the stage's existing artifacts were made with, against this chain's
+        config: the overrides to repeat (e.g. after `reconstruct --set ...`)."""
+        others = self.ctx.store.others(self.scene.name, stage, self.key(stage))
+        if not others:
+            return ""
+        want = json.loads(canonical_json(self.config(stage)))
+        lines = []
+        for art in others[:3]:
+            diff = [f"{stage}.{k}={json.dumps(v)}" for k, v in sorted(art.config.items())
+                    if want.get(k) != v]  # fmt: skip
+            art.close()
+            sets = " ".join(f"--set {d}" for d in diff)
+            lines.append(
+                f"  {art.path.name}: "
+                + (
+                    f"made with {sets}"
+                    if diff
+                    else "same config, other upstream inputs"
+                )
+            )
+        for art in others[3:]:
+            art.close()
+        return (
+            f". {len(others)} other {stage} artifact(s) exist; to use one, give its "
+            "overrides before the command (ptovs --set ... <command>):\n"
+            + "\n".join(lines)
+        )
 
     def state(self, stage: str) -> tuple[str, str]:
         """(state, detail) for `ptovs status`: done, corrupt, partial, missing or
