@@ -36,6 +36,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from ptovs.artifacts import read_json_dataset
+from ptovs.progress import CHECKPOINT_S, Heartbeat
 from ptovs.raster import (
     BlendWeights,
     Camera,
@@ -494,6 +495,8 @@ def train_male(
         disable=None,
     )
     t_start = time.perf_counter() - seconds
+    beat = Heartbeat(desc, config.iterations, step)  # log lines when no bar shows
+    last_save, shown = time.monotonic(), {}
     while step < config.iterations and not stop:
         epoch, pos = divmod(step, n_views)
         i = int(np.random.default_rng([config.seed, epoch]).permutation(n_views)[pos])
@@ -519,14 +522,22 @@ def train_male(
             hist["epoch_loss"].append(mean)
             hist["epoch_seconds"].append(time.perf_counter() - t_start)
             epoch_sum = 0.0
-            bar.set_postfix(loss=f"{mean:.5f}")
+            shown = {"loss": f"{mean:.5f}"}
+            bar.set_postfix(**shown)
             if mean < best * (1.0 - config.stop_rel):
                 best, bad = mean, 0
             else:
                 bad += 1
                 if config.stop == "plateau" and bad >= config.stop_patience:
                     stop = f"epoch loss within {config.stop_rel:g} of its best for {bad} epochs"
-        if step % config.checkpoint_every == 0 or stop or step == config.iterations:
+        beat(step, **shown)
+        if (
+            step % config.checkpoint_every == 0
+            or stop
+            or step == config.iterations
+            or time.monotonic() - last_save > CHECKPOINT_S
+        ):
+            last_save = time.monotonic()
             save(
                 {
                     "step": step, "f": f.detach().clone(), "opt": opt.state_dict(), "hist": hist,

@@ -29,6 +29,7 @@ from ptovs.field.losses import psnr, ssim
 from ptovs.field.model import GaussianModel, LearningRates
 from ptovs.field.render import composite_background, gaussian_colors, in_frustum
 from ptovs.nets import WildNets
+from ptovs.progress import CHECKPOINT_S, Heartbeat
 from ptovs.raster import Camera, render
 
 log = logging.getLogger(__name__)
@@ -189,6 +190,9 @@ def train(
     )
     t_start = time.perf_counter() - state.seconds
     recent: list[tuple[float, float]] = []
+    beat = Heartbeat(desc, cfg.iterations, state.step)  # log lines when no bar shows
+    last_save = time.monotonic()
+    figures: dict[str, str] = {}
     while state.step < cfg.iterations:
         step = state.step
         i = view_order(step, n_views, cfg.seed)
@@ -235,11 +239,19 @@ def train(
                 strict=True,
             ):
                 state.history[k].append(float(v))
-            bar.set_postfix(loss=f"{lo:.4f}", psnr=f"{ps:.2f}", gaussians=len(model))
+            figures = dict(loss=f"{lo:.4f}", psnr=f"{ps:.2f}", gaussians=len(model))
+            bar.set_postfix(**figures)
         bar.update(1)
-        if step % cfg.checkpoint_every == 0 and step < cfg.iterations:
+        beat(step, **figures)
+        # checkpoint every `checkpoint_every` steps, and after CHECKPOINT_S seconds
+        # without one (a slow or busy machine would otherwise lose much)
+        if step < cfg.iterations and (
+            step % cfg.checkpoint_every == 0
+            or time.monotonic() - last_save > CHECKPOINT_S
+        ):
             state.seconds = time.perf_counter() - t_start
             save(state.to_dict())
+            last_save = time.monotonic()
     bar.close()
     state.seconds = time.perf_counter() - t_start
     return state
