@@ -76,6 +76,7 @@ bench-accuracy: setup
 	  --data $(DATA)/accuracy --work $(WORK)/accuracy --plot docs/img/speed_vs_miou.png
 	$(BIN)/python bench/select3d.py --seeds 0-8 --data $(DATA)/accuracy --work $(WORK)/accuracy
 	$(BIN)/python bench/select3d.py --seeds 9-17 --data $(DATA)/accuracy --work $(WORK)/accuracy
+	$(BIN)/python bench/style_seeds.py --seeds $(ACC_SEEDS) --data $(DATA)/accuracy --work $(WORK)/accuracy
 
 # threads per scene job: the cores shared among make's parallel jobs (-jN; a bare -j
 # counts as one job per core), at least one. OpenMP teams on oversubscribed cores
