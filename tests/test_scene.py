@@ -734,6 +734,18 @@ def test_label_errors(labelled):
         load_labels(scene, scene.views[1])
 
 
+def test_a_broken_label_file_fails_when_the_scene_loads(labelled):
+    """Found at load (before reconstruct and training), not when query runs."""
+    scene, labels = labelled
+    path = labels / f"{scene.views[0].stem}.json"
+    path.write_text("{not json")
+    with pytest.raises(InputError, match=path.name):
+        load_scene(scene.root)
+    write_label(path, "other.jpg", W, H, [("Column", SQUARE)])
+    with pytest.raises(InputError, match=f"{path.name}.*other.jpg"):
+        load_scene(scene.root)
+
+
 def test_label_vertices_far_outside_are_refused_near_ones_clipped(labelled, caplog):
     """Vertices of 1e30 were accepted (a numpy cast warning, minutes of filling, a
     different mIoU); a polygon reaching just past the border is clipped, with a

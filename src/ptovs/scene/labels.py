@@ -125,6 +125,17 @@ def read_label_json(path: str | Path) -> dict[str, Any]:
     return {"name": name, "width": wh[0], "height": wh[1], "objects": out}
 
 
+def read_label_of(path: Path, stem: str) -> dict[str, Any]:
+    """`read_label_json`, and the label must name the image `stem`."""
+    label = read_label_json(path)
+    if Path(label["name"]).stem != Path(stem).name:
+        raise InputError(
+            f"label file {path} has info.name {label['name']!r}, which is not the "
+            f"image {stem!r}; rename the file or fix info.name"
+        )
+    return label
+
+
 def load_labels(
     source: Scene | str | Path,
     view: View | str,
@@ -151,12 +162,7 @@ def load_labels(
         )
     stem = view.stem if isinstance(view, View) else str(view)
     path = _label_path(source, stem)
-    label = read_label_json(path)
-    if Path(label["name"]).stem != Path(stem).name:
-        raise InputError(
-            f"label file {path} has info.name {label['name']!r}, which is not the "
-            f"image {stem!r}; rename the file or fix info.name"
-        )
+    label = read_label_of(path, stem)
     W, H = label["width"], label["height"]
     if isinstance(view, View) and (W, H) != (view.full_width, view.full_height):
         # labels drawn on a resized copy are fine when the aspect matches

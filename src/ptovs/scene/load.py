@@ -32,6 +32,16 @@ from ptovs.scene.views import Scene, View
 logger = logging.getLogger(__name__)
 
 
+def _check_labels(views: list, labels: Path) -> None:
+    """Parse every label file of a labelled view (format, finite and sane
+    coordinates, the image it names): cheap, no polygon is filled."""
+    from ptovs.scene.labels import read_label_of
+
+    for v in views:
+        if v.has_label:
+            read_label_of(labels / f"{v.stem}.json", v.stem)
+
+
 def load_scene(
     path: str | Path,
     *,
@@ -83,6 +93,8 @@ def load_scene(
         rec, by_name, chosen, layout.images_dir, model_dir, r, distortion, labels
     )
     _warn(views, stems, dropped, labels, model_dir)
+    if labels is not None:  # broken label files fail now, not after the training
+        _check_labels(views, Path(labels))
 
     ids, xyz, rgb, err, tlen = points_arrays(rec)
     scene = Scene(
