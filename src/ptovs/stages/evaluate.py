@@ -73,8 +73,11 @@ def run(inputs: Inputs, config: Config) -> dict:
         for cat, gt in gts.items():
             if cat not in queries:
                 raise InputError(
-                    f"evaluate: label category {cat!r} of {name} was not queried; "
-                    "rerun query with its default texts (every label category)"
+                    f"evaluate: label category {cat!r} in "
+                    f"{scene.labels_dir / (view.stem + '.json')} (image {name}) was not "
+                    f"queried (queries: {', '.join(queries[:8])}"
+                    f"{', ...' if len(queries) > 8 else ''}); rerun query with its "
+                    "default texts (every label category), or fix the category's name"
                 )
             if not gt.any():
                 log.warning(
