@@ -356,3 +356,15 @@ def test_vocabulary_change_renews_query_keys_only(scene_copy, tmp_path):
     assert after["train-male"] == before["train-male"]
     assert after["query"] != before["query"]
     assert after["evaluate"] != before["evaluate"]
+
+
+def test_an_unqueried_label_category_names_its_label_file(queried):
+    """evaluate over a query that was asked fewer texts than the labels hold: the
+    message names the label file, the category and the queries there were."""
+    work, data, _ = queried
+    res = CliRunner().invoke(main, ["--work-dir", str(work), *RECON, "--set",
+                                    'query.queries=["Brick Facade"]', "evaluate",
+                                    "--data", str(data)])  # fmt: skip
+    assert res.exit_code == 1 and isinstance(res.exception, SystemExit), res.output
+    line = next(ln for ln in res.output.splitlines() if ln.startswith("Error:"))
+    assert "was not queried" in line and ".json" in line and "Brick Facade" in line
