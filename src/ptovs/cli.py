@@ -54,23 +54,24 @@ class LazyGroup(click.Group):
         the traceback as well."""
         try:
             return super().invoke(ctx)
-        except (InputError, MissingInputError) as exc:
+        except (InputError, MissingInputError, OSError, MemoryError) as exc:
             if _TRACEBACKS:
                 log.debug("traceback", exc_info=True)
-            raise click.ClickException(str(exc)) from None
-        except OSError as exc:  # permission, full disk, a folder in the way, ...
-            if _TRACEBACKS:
-                log.debug("traceback", exc_info=True)
-            from ptovs.outputs import describe_os_error
+            raise click.ClickException(_user_message(exc)) from None
 
-            raise click.ClickException(describe_os_error(exc)) from None
-        except MemoryError:
-            if _TRACEBACKS:
-                log.debug("traceback", exc_info=True)
-            raise click.ClickException(
-                "out of memory; lower the sizes given (--size, --images, "
-                "scene.downscale) or free memory (run with -vv for the traceback)"
-            ) from None
+
+def _user_message(exc: BaseException) -> str:
+    """The one line the CLI prints for an error a user can cause."""
+    if isinstance(exc, InputError | MissingInputError):  # before OSError: a subclass
+        return str(exc)
+    if isinstance(exc, OSError):  # permission, full disk, a folder in the way, ...
+        from ptovs.outputs import describe_os_error
+
+        return describe_os_error(exc)
+    return (
+        "out of memory; lower the sizes given (--size, --images, scene.downscale) "
+        "or free memory (run with -vv for the traceback)"
+    )
 
 
 _TRACEBACKS = False  # set by -vv: errors mapped to messages also log their traceback

@@ -50,7 +50,7 @@ def check_outputs(
     or a description such as "the record beside --out") to the path (None: not
     asked for). Raises OutputError when two outputs share a path, when a path is
     a folder, when its folder cannot be made or written, or when the disk holding
-    it has less than `need_bytes` free (`suffix`: the file type, for the example
+    the disk of the first output has less than `need_bytes` free (`suffix`: the file type, for the example
     name a message gives). Returns the given paths, absolute.
     """
     given = {k: Path(v) for k, v in outputs.items() if v is not None}
@@ -75,19 +75,15 @@ def check_outputs(
                 f"{what} {path}: {anc} is a file, not a folder; choose another path"
             )
         _probe(what, path, anc)
-    if need_bytes > 0 and given:
-        by_dev: dict[int, tuple[Path, int]] = {}
-        for path in given.values():
-            anc = _existing_ancestor(path)
-            dev = anc.stat().st_dev
-            by_dev[dev] = (anc, by_dev.get(dev, (anc, 0))[1] + need_bytes // len(given))
-        for anc, need in by_dev.values():
-            free = shutil.disk_usage(anc).free
-            if free < need:
-                raise OutputError(
-                    f"the disk holding {anc} has {_mb(free)} free; these outputs "
-                    f"need about {_mb(need)}. Free space or choose another folder"
-                )
+    if need_bytes > 0 and given:  # the disk the first (the main) output goes to
+        what, path = next(iter(given.items()))
+        anc = _existing_ancestor(path)
+        free = shutil.disk_usage(anc).free
+        if free < need_bytes:
+            raise OutputError(
+                f"the disk holding {anc} has {_mb(free)} free; {what} will need about "
+                f"{_mb(need_bytes)}. Free space or choose another folder"
+            )
     return {k: Path(os.path.abspath(v)) for k, v in given.items()}
 
 

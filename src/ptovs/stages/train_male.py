@@ -222,11 +222,12 @@ def _csr_rows(csr: tuple, p0: int, p1: int) -> tuple:
     return indptr[p0 : p1 + 1] - indptr[p0], idx[a:b], val[a:b]
 
 
-def _encode_lift(lift: torch.Tensor, ae: Artifact) -> tuple[torch.Tensor, dict, dict]:
+def _encode_lift(
+    lift: torch.Tensor, model: torch.nn.Module
+) -> tuple[torch.Tensor, dict, dict]:
     """Codes [P, L·A·3] of the lifted features [P, L, A, D]: each sum normalised to
-    a unit feature and encoded by the AE (zero sums stay zero codes)."""
+    a unit feature and encoded by the AE `model` (zero sums stay zero codes)."""
     t0 = time.perf_counter()
-    model = load_autoencoder(ae).eval()
     n, n_lv, n_app, dim = lift.shape
     x = lift.reshape(-1, dim)
     norm = x.norm(dim=1)
@@ -286,6 +287,7 @@ def run(inputs: Inputs, config: Config, ckpt: Checkpoint | None = None) -> dict:
                 log.info("train-male: the lift's sums exceed cache_mb = %d: %d passes "
                          "over the views", config.cache_mb, len(starts))  # fmt: skip
             f = torch.zeros(len(g), n_ch)
+            model = load_autoencoder(inputs.ae).eval()
             t_lift = time.perf_counter()
             for i, p0 in enumerate(starts):
                 p1 = min(len(g), p0 + chunk)
@@ -294,7 +296,7 @@ def run(inputs: Inputs, config: Config, ckpt: Checkpoint | None = None) -> dict:
                                   store if i == 0 else None, acc, (p0, p1))  # fmt: skip
                 if i == 0:
                     seen = s
-                f[p0:p1], metrics, hist = _encode_lift(acc, inputs.ae)
+                f[p0:p1], metrics, hist = _encode_lift(acc, model)
                 del acc
             metrics.update(train_seconds=round(time.perf_counter() - t_lift, 3),
                            lift_passes=len(starts))  # fmt: skip
