@@ -221,7 +221,8 @@ def test_helpers_and_fingerprint(tmp_path, caplog):
         scene.view("nope")
     files = scene.fingerprint_files()
     assert root / "brandenburg.tsv" in files
-    assert labels / f"{stem}.json" in files
+    assert labels / f"{stem}.json" not in files  # labels key only query, evaluate
+    assert scene.label_files() == [labels / f"{stem}.json"]
     assert {
         root / "dense" / "sparse" / f"{n}.bin" for n in ("cameras", "images")
     } <= set(files)
@@ -263,7 +264,8 @@ def test_working_size(size, r, expected):
 
 def test_downscale_auto_and_explicit(tmp_path):
     root, rec, _ = make_scene(tmp_path)
-    scene = load_scene(root)  # PhotoTourism: r = 2
+    assert load_scene(root).downscale == 1  # auto: 97 px photos are kept whole
+    scene = load_scene(root, downscale=2)
     assert scene.downscale == 2
     for v in scene.views:
         cam = rec.cameras[rec.images[v.image_id].camera_id]
@@ -283,6 +285,28 @@ def test_downscale_auto_and_explicit(tmp_path):
     (root / "synthetic").mkdir()
     synth = load_scene(root)
     assert synth.synthetic and synth.downscale == 1 and synth.views[0].width == 97
+
+
+@pytest.mark.parametrize(
+    ("sizes", "r"),
+    [
+        ([(4000, 3000)] * 3, 4),  # 12 MP: 1000 px
+        ([(3072, 2048)] * 3, 4),  # the real sets: 768 px
+        ([(1600, 1200)] * 3, 2),  # PhotoTourism: the paper's r = 2
+        ([(1000, 750)] * 3, 1),
+        ([(750, 1000)] * 3, 1),  # portrait: the long side counts
+        ([(640, 480), (5000, 4000), (6000, 4000)], 5),  # the median photo
+    ],
+)
+def test_downscale_auto_long_side(sizes, r):
+    from ptovs.scene.load import AUTO_LONG_SIDE, auto_downscale
+
+    rec = build_model(3, sizes=sizes)
+    by_name = {img.name: img_id for img_id, img in rec.images.items()}
+    chosen = dict.fromkeys(by_name, "train")
+    assert auto_downscale(rec, by_name, chosen) == r
+    side = sorted(max(s) for s in sizes)[1]
+    assert side / r <= AUTO_LONG_SIDE and (r == 1 or side / (r - 1) > AUTO_LONG_SIDE)
 
 
 @pytest.mark.parametrize("bad", [0, -2, 1.5, "x", True])
@@ -315,7 +339,7 @@ def _single_image_scene(tmp_path: Path, name: str, img: np.ndarray) -> Path:
 
 def test_load_image_colour_png_exact(tmp_path):
     root, _, images = make_scene(tmp_path, layout="colmap")
-    scene = load_scene(root)
+    scene = load_scene(root, downscale=2)
     assert scene.downscale == 2
     full = load_scene(root, downscale=1)
     for v, vf in zip(scene.views, full.views, strict=True):
@@ -410,7 +434,7 @@ def test_resize_map_kinds():
 
 def test_check_size(tmp_path):
     root, _, _ = make_scene(tmp_path)
-    v = load_scene(root).views[0]
+    v = load_scene(root, downscale=2).views[0]
     check_size(np.zeros((30, 48)), v, "u_t")
     check_size(np.zeros((30, 48, 3)), v, "u_t")
     with pytest.raises(InputError, match="u_t .*(61, 97)"):
@@ -678,7 +702,7 @@ def labelled(tmp_path):
             ("Iron Cross", [[60, 40], [80.9, 40], [80.9, 50.7], [60, 50.7]]),
         ],
     )
-    return load_scene(root), labels
+    return load_scene(root, downscale=2), labels
 
 
 def test_labels_or_per_category_and_verbatim(labelled):

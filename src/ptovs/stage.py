@@ -82,7 +82,8 @@ class SceneConfig:
     """How a scene folder is read (config section `[scene]`)."""
 
     downscale: int | str = "auto"
-    """Image downscale factor r; "auto" = 1 for synthetic scenes, else 2."""
+    """Image downscale factor r; "auto" = the smallest r that brings the photos'
+    median long side to at most 1,000 px (r = 4 for 12 MP photos, 1 for small ones)."""
     split_file: str = "auto"
     """"auto" (the single *.tsv in the scene root), "all-train", or a path."""
     distortion: Literal["refuse", "ignore"] = "refuse"
@@ -198,6 +199,7 @@ class SceneRef:
                 downscale=self.config.downscale,
                 split_file=self.config.split_file,
                 distortion=self.config.distortion,
+                name=self.name,
             )
         return self._scene
 

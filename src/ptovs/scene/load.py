@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 from typing import Any
 
@@ -49,18 +50,22 @@ def load_scene(
     split_file: str | Path = "auto",
     labels_dir: str | Path | None = None,
     distortion: str = "refuse",
+    name: str | None = None,
 ) -> Scene:
     """Load a PhotoTourism or COLMAP scene (no image is decoded).
 
     Args:
         path: the scene folder.
-        downscale: "auto" (1 for synthetic scenes, else 2) or an integer r >= 1.
+        downscale: "auto" (the smallest r that brings the median long side to
+            at most AUTO_LONG_SIDE px) or an integer r >= 1.
         split_file: "auto" (the single *.tsv in the scene root), "all-train", or a
             path to a TSV.
         labels_dir: folder of ISAT JSONs; None looks for
             `<path>/../label/<scene name>/`.
         distortion: "refuse" (non-zero lens distortion is an error) or "ignore"
             (drop it with a warning).
+        name: the scene's name in logs and messages (default: the folder's; a
+            folder posed by SfM is named by the photo folder the user gave).
 
     Returns:
         The Scene, views sorted by name.
@@ -72,11 +77,6 @@ def load_scene(
         )
     layout = detect_layout(root)
     synthetic = (root / "synthetic").is_dir()
-    r = (
-        (2 if not synthetic else 1)
-        if isinstance(downscale, str) and downscale == "auto"
-        else check_downscale(downscale)
-    )
     model_dir, ext = find_model(layout.sparse_dir)
     rec = read_model(model_dir, ext)
 
@@ -86,6 +86,8 @@ def load_scene(
     by_name = registered_images(rec, model_dir)
 
     chosen = assign_splits(by_name, splits, tsv, model_dir)
+    auto = isinstance(downscale, str) and downscale == "auto"
+    r = auto_downscale(rec, by_name, chosen) if auto else check_downscale(downscale)
 
     labels = resolve_labels_dir(root, labels_dir)
 
@@ -99,7 +101,7 @@ def load_scene(
     ids, xyz, rgb, err, tlen = points_arrays(rec)
     scene = Scene(
         root=root,
-        name=root.resolve().name,
+        name=name or root.resolve().name,
         downscale=r,
         views=views,
         points_xyz=xyz,
@@ -126,6 +128,24 @@ def load_scene(
         r,
     )
     return scene
+
+
+AUTO_LONG_SIDE = 1000
+"""downscale = "auto": the smallest r that brings the photos' median long side to at
+most this many pixels (12 MP photos, 4000 px: r = 4, 1000 px; 3072 px: r = 4, 768
+px; PhotoTourism's ~1000–1600 px: r = 2 as in the paper; small photos: r = 1)."""
+
+
+def auto_downscale(rec: Any, by_name: dict[str, int], chosen: dict[str, str]) -> int:
+    """The downscale factor "auto" resolves to for the chosen images (no decoding:
+    sizes come from the model's cameras)."""
+    sides = [
+        max(int(cam.width), int(cam.height))
+        for cam in (rec.cameras[rec.images[by_name[n]].camera_id] for n in chosen)
+    ]
+    if not sides:
+        return 1
+    return max(1, math.ceil(float(np.median(sides)) / AUTO_LONG_SIDE))
 
 
 def _make_views(
