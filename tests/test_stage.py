@@ -243,3 +243,23 @@ def test_concurrent_runs_do_not_corrupt(env):
 
     with Artifact(path) as art:
         assert len(art.names()) == len(names)
+
+
+def test_label_edits_rekey_only_the_stages_that_read_labels(scene_copy: Path):
+    """A label edit changes the keys of query and evaluate, and of nothing before
+    them: reconstruct and training are reused (issue 23)."""
+    from ptovs.config import load_config
+    from ptovs.stage import PIPELINE, Chain, RunContext, resolve_scene
+
+    def keys() -> dict[str, str]:
+        ctx = RunContext(scene_copy.parent / "work", load_config(None))
+        chain = Chain(ctx, resolve_scene(ctx, None, scene_copy))
+        return {stage: chain.key(stage) for stage in PIPELINE}
+
+    before = keys()
+    labels = sorted((scene_copy.parent / "label" / scene_copy.name).glob("*.json"))
+    assert labels
+    labels[0].write_text(labels[0].read_text() + "\n")  # same labels, new bytes
+    after = keys()
+    changed = {stage for stage in PIPELINE if before[stage] != after[stage]}
+    assert changed == {"query", "evaluate"}

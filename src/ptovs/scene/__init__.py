@@ -63,6 +63,7 @@ from ptovs.scene.images import (
 from ptovs.scene.labels import (
     GT_RESIZE_MODES,
     label_categories,
+    labels_digest,
     load_labels,
     read_label_json,
 )
@@ -81,6 +82,7 @@ __all__ = [
     "check_size",
     "jpeg_truncated",
     "label_categories",
+    "labels_digest",
     "load_image",
     "load_labels",
     "load_scene",

@@ -40,6 +40,20 @@ def _label_path(source: Scene | str | Path, stem: str) -> Path:
     return path
 
 
+def labels_digest(scene: Scene) -> str:
+    """sha256 over the scene's label files (stem and content), or "none": the key
+    of what the stages that read labels (query, evaluate) read."""
+    import hashlib
+
+    files = scene.label_files()
+    if not files:
+        return "none"
+    h = hashlib.sha256()
+    for path in files:
+        h.update(path.stem.encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
 def read_label_json(path: str | Path) -> dict[str, Any]:
     """Read and validate one ISAT label JSON.
 

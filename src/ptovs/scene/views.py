@@ -109,18 +109,22 @@ class Scene:
         return load_image(view)
 
     def fingerprint_files(self) -> list[Path]:
-        """The files whose content defines the scene.
+        """The files whose content defines the scene. Labels are not among them:
+        only the stages that read labels are keyed by them (`label_files`), so a
+        label edit does not retrain the chain.
 
         Returns:
-            Model files, the split file (if any), the views' label JSONs and the
-            views' images, in that order.
+            Model files, the split file (if any) and the views' images, in that
+            order.
         """
         files = list(self.model_files)
         if self.split_file is not None:
             files.append(self.split_file)
-        if self.labels_dir is not None:
-            files += [
-                self.labels_dir / f"{v.stem}.json" for v in self.views if v.has_label
-            ]
         files += [v.image_path for v in self.views]
         return files
+
+    def label_files(self) -> list[Path]:
+        """The labelled views' label JSONs, in view order."""
+        if self.labels_dir is None:
+            return []
+        return [self.labels_dir / f"{v.stem}.json" for v in self.views if v.has_label]

@@ -136,6 +136,14 @@ def _options() -> tuple:
     )
 
 
+def label_key(config: Config, scene_ref: Any) -> dict[str, str]:
+    """The ground truth is the label files: evaluate is keyed by their content
+    (the scene fingerprint leaves labels out, so label edits retrain nothing)."""
+    from ptovs.scene import labels_digest
+
+    return {"labels": labels_digest(scene_ref.load())}
+
+
 command = stage_command(
     NAME,
     VERSION,
@@ -143,6 +151,7 @@ command = stage_command(
     Inputs,
     run,
     kind="single",
+    extra_key=label_key,
     extras=CommandExtras(
         options=_options(),
         variant="many",

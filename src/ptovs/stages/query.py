@@ -107,17 +107,21 @@ def _count(inputs: Inputs, config: Config) -> int:
 
 
 def text_key(config: Config, scene_ref: Any) -> dict[str, str]:
-    """The stand-in encoder's vocabulary is outside the scene fingerprint, but
-    the text embeddings come from it: key query artifacts by its content."""
+    """What query reads outside the scene fingerprint: the label files (its
+    default texts and views) and the stand-in encoder's vocabulary (the text
+    embeddings come from it)."""
+    from ptovs.scene import labels_digest
+
     scene = scene_ref.load()
+    keys = {"labels": labels_digest(scene)}
     if encoder_name(config, scene) != "synthetic":
-        return {}  # the checkpoint path is in the config
+        return keys  # the checkpoint path is in the config
     import hashlib
 
     path = Path(scene.root) / "synthetic" / "vocabulary.json"
     if not path.is_file():
-        return {"vocabulary": "missing"}  # the stage itself says what is wrong
-    return {"vocabulary": hashlib.sha256(path.read_bytes()).hexdigest()}
+        return keys | {"vocabulary": "missing"}  # the stage says what is wrong
+    return keys | {"vocabulary": hashlib.sha256(path.read_bytes()).hexdigest()}
 
 
 def write_outputs(
