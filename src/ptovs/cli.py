@@ -28,6 +28,18 @@ from ptovs.stage import (
 log = logging.getLogger("ptovs")
 
 
+def _openmp_defaults() -> None:
+    """OpenMP threads sleep at once when a parallel region ends, instead of spinning
+    (libgomp's default spins ~3 ms): on a machine shared with other work, spinning
+    threads took the cores the working ones needed (issue 23; bench/busy.py).
+    Runs before torch loads its OpenMP runtime; a user's own setting wins."""
+    if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
+        os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+
+
+_openmp_defaults()
+
+
 class LazyGroup(click.Group):
     """Lists stage and application commands without importing their modules."""
 
@@ -119,6 +131,15 @@ def _setup_logging(verbose: int, quiet: int) -> None:
     help="Override a config value, e.g. --set scene.downscale=1 (repeatable).",
 )
 @click.option("--force", is_flag=True, help="Recompute the stage even if it is cached.")
+@click.option(
+    "--threads",
+    type=click.IntRange(1, 4096),
+    envvar="PTOVS_THREADS",
+    default=None,
+    help="CPU threads for torch and the rasterizer (default: torch's, one per core; "
+    "$PTOVS_THREADS). Results are reproducible bit for bit per thread count. On a "
+    "machine shared with other work, fewer threads than cores can be faster.",
+)
 @click.option("-v", "--verbose", count=True, help="More log output (-vv for debug).")
 @click.option("-q", "--quiet", count=True, help="Less log output.")
 @click.pass_context
@@ -128,6 +149,7 @@ def main(
     config_file: Path | None,
     sets: tuple[str, ...],
     force: bool,
+    threads: int | None,
     verbose: int,
     quiet: int,
 ) -> None:
@@ -143,6 +165,10 @@ def main(
       ptovs status --data data/tiny_s0
     """
     _setup_logging(verbose, quiet)
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)
     try:
         config = merge(load_config(config_file), parse_sets(sets))
     except (InputError, MissingInputError) as exc:
