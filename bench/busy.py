@@ -54,7 +54,7 @@ def scene_data(args: argparse.Namespace) -> Path:
     if args.scene == "real":
         folder = args.work / "data" / "fountain"
         if not folder.is_dir():
-            shutil.copytree(REAL / "images", folder / "images")
+            shutil.copytree(args.photos / "images", folder / "images")
         return folder
     data = args.work / "data"
     scene = data / f"{args.scene}_s0"
@@ -98,6 +98,7 @@ def run(args: argparse.Namespace, data: Path, setting: str, busy: bool) -> float
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--scene", default="real", choices=["real", "tiny", "small"])
+    p.add_argument("--photos", type=Path, default=REAL, help="a real photo set")
     p.add_argument("--iterations", type=int, default=20)
     p.add_argument(
         "--downscale",
