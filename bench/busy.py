@@ -7,8 +7,8 @@ Run it from a checkout nobody edits meanwhile, on a machine with nothing else
 running: the competing process is the only other work there should be.
 
 Each setting is an environment for `ptovs reconstruct` (OpenMP wait policy, thread
-count); each runs alone and with one competing CPU-bound process (a Python busy
-loop, the "other work" of a shared machine). The figure is training steps per
+count); each runs alone and beside `--competitors` CPU-bound processes (Python busy
+loops, the "other work" of a shared machine). The figure is training steps per
 second, from the artifact's own training clock (`train_seconds`), so start-up and
 SfM (cached after the first run) are not in it.
 
@@ -78,13 +78,14 @@ def run(args: argparse.Namespace, data: Path, setting: str, busy: bool) -> float
     cmd = [sys.executable, "-m", "ptovs", "-q", "--work-dir", str(work)]
     cmd += [f"--set={s}" for s in sets]
     cmd += ["reconstruct", "--data", str(data), "--force"]
-    competitor = (
-        subprocess.Popen([sys.executable, "-c", "while True: pass"]) if busy else None
-    )
+    spin = [sys.executable, "-c", "while True: pass"]
+    competitors = [
+        subprocess.Popen(spin) for _ in range(args.competitors if busy else 0)
+    ]
     try:
         proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
     finally:
-        if competitor is not None:
+        for competitor in competitors:
             competitor.kill()
             competitor.wait()
     if proc.returncode != 0:
@@ -106,6 +107,9 @@ def main() -> None:
         help="scene.downscale (2: the 1536×1024 steps of the issue's report)",
     )
     p.add_argument("--settings", nargs="+", default=list(SETTINGS))
+    p.add_argument(
+        "--competitors", type=int, default=1, help="CPU-bound processes beside it"
+    )
     p.add_argument("--work", type=Path, default=ROOT / "work" / "busy")
     args = p.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
@@ -117,12 +121,13 @@ def main() -> None:
         t0 = time.perf_counter()
         alone = run(args, data, setting, busy=False)
         busy = run(args, data, setting, busy=True)
-        res[f"{args.scene}/{args.iterations}/{setting}"] = dict(
+        res[f"{args.scene}/{args.iterations}/{setting}/{args.competitors}"] = dict(
             alone=alone, busy=busy, wall_s=time.perf_counter() - t0
         )
         res.save()
         print(
-            f"| {args.scene} ({args.iterations} its) | {setting} | {alone:.3f} | "
+            f"| {args.scene} ({args.iterations} its, {args.competitors} busy) | "
+            f"{setting} | {alone:.3f} | "
             f"{busy:.3f} | {busy / alone:.2f} |",
             flush=True,
         )
