@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -84,3 +85,36 @@ def test_default_toml_matches_every_stage_default():
     for spec in all_stages():
         built = build_config(spec.config_cls, cfg.get(spec.name, {}), spec.name)
         assert built == spec.config_cls(), spec.name
+
+
+def test_openmp_threads_sleep_and_threads_option():
+    """Idle OpenMP threads sleep unless the user chose a policy (issue 23: spinning
+    threads slowed reconstruct on a shared machine); --threads sets torch's count."""
+    code = (
+        "import os, sys; import ptovs.cli as c, torch; "
+        "print(os.environ.get('OMP_WAIT_POLICY'));"
+        "c.main(['--threads', '1', 'status', '--help'], standalone_mode=False);"
+        "print('threads', torch.get_num_threads())"
+    )
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "PTOVS_THREADS")
+    }
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    assert out.splitlines()[0] == "PASSIVE" and out.splitlines()[-1] == "threads 1"
+    env["OMP_WAIT_POLICY"] = "ACTIVE"  # the user's own choice wins
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    assert out.splitlines()[0] == "ACTIVE"

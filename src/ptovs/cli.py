@@ -137,8 +137,9 @@ def _setup_logging(verbose: int, quiet: int) -> None:
     envvar="PTOVS_THREADS",
     default=None,
     help="CPU threads for torch and the rasterizer (default: torch's, one per core; "
-    "$PTOVS_THREADS). Results are reproducible bit for bit per thread count. On a "
-    "machine shared with other work, fewer threads than cores can be faster.",
+    "$PTOVS_THREADS). Results are reproducible bit for bit per thread count. Idle "
+    "threads sleep (OMP_WAIT_POLICY=PASSIVE unless set), so the default degrades "
+    "gracefully beside other work (docs/benchmarks.md, busy machines).",
 )
 @click.option("-v", "--verbose", count=True, help="More log output (-vv for debug).")
 @click.option("-q", "--quiet", count=True, help="Less log output.")
