@@ -66,6 +66,10 @@ bench: setup
 	$(BIN)/python bench/style_instrument.py --preset bench --seeds 12 --out $(WORK)/bench/style_instrument.json
 	$(BIN)/python bench/style_instrument.py --preset tiny --seeds 30 --out $(WORK)/bench/style_instrument.json
 	$(BIN)/python bench/apps.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
+	$(BIN)/python bench/busy.py --work $(WORK)/busy
+	$(BIN)/python bench/busy.py --work $(WORK)/busy --competitors 2
+	$(BIN)/python bench/real.py --work $(WORK)/real
+	$(BIN)/python bench/real.py --work $(WORK)/real --sets fountain_p11 --megapixels 12
 
 # the accuracy instrument (issue 20): ACC_SEEDS seeds of the `small` preset, every
 # variant, ceilings, cluster-bootstrap CIs; dev = the first half of the seeds, test

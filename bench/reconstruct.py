@@ -16,6 +16,9 @@ Parts:
            centre error after a Sim3 alignment; then PSNR trained on the SfM poses
   presets  s/iteration, Gaussians and peak RSS of the `cpu` and `authors` presets,
            and PSNR of both at equal (short) budgets
+  errors   the error budget (issue 24): today's field; the photos re-rendered
+           without occluders; under one neutral appearance without occluders
+           (the static ceiling); a larger Gaussian cap (--max-gaussians)
 
 Results go to <work>/bench_reconstruct.json and are printed as markdown rows.
 """
@@ -184,6 +187,30 @@ def sfm_part(work: Path, scene: Path) -> dict:
     return res
 
 
+def error_budget(work: Path, scene: Path, max_gaussians: int) -> list[tuple[str, dict]]:
+    """Issue 24's error budget at today's budget: the field as it is; the same
+    cameras with every photo re-rendered without occluders (own appearance), and
+    under one neutral appearance without occluders (the static ceiling of this
+    capacity and schedule); and a larger Gaussian cap. Every row is scored against
+    the same truth (test views: own embedding, true transient pixels excluded;
+    transfer: the world re-rendered under another photo's appearance)."""
+    from ptovs.synthetic.generate import clean_scene
+
+    rows = [("today", run_config(work / "today", scene, []))]
+    for label, appearance in (("no-occluders", "own"), ("static", "neutral")):
+        folder = work / "data" / label / scene.name
+        if not (folder / "dense" / "images").is_dir():
+            clean_scene(scene, folder, appearance=appearance)
+        r = run_config(work / label, folder, [])
+        r["mask_auroc"] = None  # no occluders left to find
+        if appearance == "neutral":  # every photo looks alike: nothing to transfer
+            r["transfer_psnr"] = None
+        rows.append((label, r))
+    sets = [f"max_gaussians={max_gaussians}"]
+    rows.append((f"cap {max_gaussians}", run_config(work / "cap", scene, sets)))
+    return rows
+
+
 def presets_part(work: Path, scene: Path, iterations: int) -> list[dict]:
     rows = []
     for preset in ("cpu", "authors"):
@@ -209,6 +236,7 @@ def main() -> None:
     )
     ap.add_argument("--budgets", nargs="+", type=int, default=[1000, 2000, 4000])
     ap.add_argument("--preset-iterations", type=int, default=200)
+    ap.add_argument("--max-gaussians", type=int, default=50000, help="errors: the cap")
     ap.add_argument("--data", type=Path, default=ROOT / "data")
     ap.add_argument("--work", type=Path, default=ROOT / "work" / "bench")
     args = ap.parse_args()
@@ -237,6 +265,21 @@ def main() -> None:
                 f"{r['transfer_psnr']:.2f} | – | {r['gaussians']} | {r['peak_rss_mb']} |",
                 flush=True,
             )
+        if "errors" in args.parts:
+            for label, r in error_budget(
+                args.work / "errors", scene, args.max_gaussians
+            ):
+                results[f"errors_{label}_s{seed}"] = r
+                save()
+                auroc, transfer = (
+                    "–" if r[k] is None else f"{r[k]:.3f}"
+                    for k in ("mask_auroc", "transfer_psnr")
+                )
+                print(
+                    f"| {label} | {seed} | {r['wall_s']} | {r['test_psnr']:.2f} | "
+                    f"{transfer} | {auroc} | {r['gaussians']} |",
+                    flush=True,
+                )
     seed0 = bench_scene(args.data, args.seeds[0])
     if "budgets" in args.parts:
         for it in args.budgets:

@@ -1077,11 +1077,14 @@ def rerender(
     return render(world, cam, app, bbs, aa=aa), app
 
 
-def clean_scene(scene_dir: Path, out: Path, progress: bool = False) -> Path:
+def clean_scene(
+    scene_dir: Path, out: Path, progress: bool = False, appearance: str = "neutral"
+) -> Path:
     """A copy of a generated scene whose photos are clean re-renders.
 
-    Every image is rendered again at its own camera under the neutral appearance
-    without occluders, at the same size, and written as the generator writes
+    Every image is rendered again at its own camera under `appearance` ("neutral",
+    or "own": the photo's own, so only the occluders go) without occluders, at the
+    same size, and written as the generator writes
     photos (JPEG q95, 4:4:4). Everything else (model, split, labels, truth,
     vocabulary) is copied unchanged, labels into out/../label/<name>. The clean-
     feature oracle of bench/accuracy.py extracts its features from these.
@@ -1090,6 +1093,7 @@ def clean_scene(scene_dir: Path, out: Path, progress: bool = False) -> Path:
         scene_dir: a generated scene (out of `generate_scene`).
         out: the new scene folder (replaced if it holds a synthetic scene).
         progress: show a tqdm bar over images.
+        appearance: "neutral" or "own" (see `rerender`).
 
     Returns:
         `out`.
@@ -1106,7 +1110,7 @@ def clean_scene(scene_dir: Path, out: Path, progress: bool = False) -> Path:
         shutil.copytree(src_labels, label)
     aa = PRESETS[cams["preset"]].aa if cams.get("preset") in PRESETS else 5
     for rec in tqdm(cams["images"], desc=f"clean {out.name}", disable=not progress):
-        view, _ = rerender(world, rec, appearance="neutral", occluders="none", aa=aa)
+        view, _ = rerender(world, rec, appearance=appearance, occluders="none", aa=aa)
         path = scene / "dense" / "images" / rec["name"]
         cv2.imwrite(str(path), cv2.cvtColor(view.image, cv2.COLOR_RGB2BGR), _JPEG)
     return scene
