@@ -96,25 +96,15 @@ def test_openmp_threads_sleep_and_threads_option():
         "c.main(['--threads', '1', 'status', '--help'], standalone_mode=False);"
         "print('threads', torch.get_num_threads())"
     )
-    env = {
-        k: v
-        for k, v in os.environ.items()
-        if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "PTOVS_THREADS")
-    }
-    out = subprocess.run(
-        [sys.executable, "-c", code],
-        env=env,
-        capture_output=True,
-        text=True,
-        check=True,
-    ).stdout
-    assert out.splitlines()[0] == "PASSIVE" and out.splitlines()[-1] == "threads 1"
-    env["OMP_WAIT_POLICY"] = "ACTIVE"  # the user's own choice wins
-    out = subprocess.run(
-        [sys.executable, "-c", code],
-        env=env,
-        capture_output=True,
-        text=True,
-        check=True,
-    ).stdout
-    assert out.splitlines()[0] == "ACTIVE"
+    own = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "PTOVS_THREADS")
+    env = {k: v for k, v in os.environ.items() if k not in own}
+
+    def lines(env: dict[str, str]) -> list[str]:
+        run = [sys.executable, "-c", code]
+        return subprocess.run(
+            run, env=env, capture_output=True, text=True, check=True
+        ).stdout.splitlines()
+
+    out = lines(env)
+    assert out[0] == "PASSIVE" and out[-1] == "threads 1"
+    assert lines(env | {"OMP_WAIT_POLICY": "ACTIVE"})[0] == "ACTIVE"  # the user's wins
