@@ -235,3 +235,38 @@ def test_non_overlapping_photos_fail_clearly(tmp_path):
         cv2.imwrite(str(folder / f"{i}.jpg"), img)
     with pytest.raises(InputError, match="registered 0 of 4|registered [0-2] of 4"):
         posed_scene(folder, "noise", tmp_path / "w", SfmConfig())
+
+
+def _with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:
+    """The JPEG with an APP1 EXIF segment holding only the orientation tag."""
+    import struct
+
+    ifd = struct.pack("<H", 1) + struct.pack("<HHIHH", 0x0112, 3, 1, orientation, 0)
+    tiff = b"II*\x00" + struct.pack("<I", 8) + ifd + struct.pack("<I", 0)
+    body = b"Exif\x00\x00" + tiff
+    return jpeg[:2] + b"\xff\xe1" + struct.pack(">H", len(body) + 2) + body + jpeg[2:]
+
+
+def test_exif_rotated_photo_is_staged_upright(tmp_path, caplog):
+    """A phone photo stored sideways with an EXIF orientation is posed upright, and
+    the log names it (issue 24); a photo without the tag is copied as it is."""
+    from ptovs.sfm import _stage_photos
+
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur((rng.random((48, 80, 3)) * 255).astype(np.uint8), (5, 5), 0)
+    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    src = tmp_path / "in"
+    src.mkdir()
+    (src / "phone.jpg").write_bytes(_with_exif_orientation(buf.tobytes(), 6))
+    (src / "plain.jpg").write_bytes(buf.tobytes())
+    # the fixture is what a phone writes: OpenCV turns it when asked to
+    assert cv2.imread(str(src / "phone.jpg")).shape[:2] == (80, 48)
+    with caplog.at_level("INFO", logger="ptovs"):
+        names, skipped = _stage_photos(sorted(src.iterdir()), tmp_path / "out")
+    assert names == ["phone.png", "plain.jpg"] and not skipped
+    staged = cv2.imread(str(tmp_path / "out" / "phone.png"), cv2.IMREAD_UNCHANGED)
+    assert staged.shape == (80, 48, 3)  # 90° clockwise: upright
+    decoded = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+    np.testing.assert_array_equal(staged, cv2.rotate(decoded, cv2.ROTATE_90_CLOCKWISE))
+    assert "phone.jpg turned upright (EXIF orientation)" in caplog.text
+    assert (tmp_path / "out" / "plain.jpg").read_bytes() == buf.tobytes()

@@ -15,7 +15,8 @@ so every later stage reads it like a posed scene.
 Choices (measured on the bench preset, docs/benchmarks.md):
 - Photos are checked first: unreadable files and truncated JPEGs (no end-of-image
   marker: libjpeg decodes them with a warning that names no file) are skipped and
-  listed; grey, 16-bit, alpha photos are converted to 8-bit RGB copies.
+  listed; grey, 16-bit, alpha photos are converted to 8-bit RGB copies, and JPEGs
+  with an EXIF orientation are staged as upright copies.
 - SIFT on CPU with `max_image_size` 1024 and `max_num_features` 4096 keypoint
   locations (up to two orientations each, so up to 8192 features a photo).
 - Pairing: exhaustive while its estimated time (pairs x 0.2 s x (features/4096)²,
@@ -54,7 +55,7 @@ from ptovs.scene import jpeg_truncated
 log = logging.getLogger(__name__)
 
 NAME = "sfm"
-VERSION = 1
+VERSION = 2  # 2: EXIF-rotated JPEGs are staged upright
 IMAGE_EXTS = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp", ".jp2"}
 MIN_REGISTERED = 3
 PAIR_SECONDS = 0.2  # exhaustive matching of two 4096-feature photos on 2 cores
@@ -134,28 +135,53 @@ def _stage_photos(photos: list[Path], out: Path) -> tuple[list[str], dict[str, s
             skipped[src.name] = "cannot be decoded"
             log.warning("photo %s cannot be decoded; skipped", src)
             continue
-        if img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3:
+        upright = _exif_upright(src)
+        if upright is not None:
+            img = upright
+        elif img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3:
             dst = out / src.name
             shutil.copyfile(src, dst)
-        else:
-            if img.dtype == np.uint16:
-                img = (img / 257.0).round().astype(np.uint8)
-            elif img.dtype != np.uint8:
-                img = (np.clip(img, 0, 1) * 255).round().astype(np.uint8)
-            if img.ndim == 2:
-                img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
-            elif img.shape[2] == 2:
-                img = cv2.cvtColor(img[:, :, 0], cv2.COLOR_GRAY2BGR)
-            elif img.shape[2] == 4:
-                img = img[:, :, :3]
-            dst = out / (src.stem + ".png")
-            if dst.exists() and dst.name != src.name:
-                skipped[src.name] = f"name clash with {dst.name}"
-                continue
-            cv2.imwrite(str(dst), img)
-            log.info("photo %s converted to 8-bit RGB as %s", src.name, dst.name)
+            names.append(dst.name)
+            continue
+        if img.dtype == np.uint16:
+            img = (img / 257.0).round().astype(np.uint8)
+        elif img.dtype != np.uint8:
+            img = (np.clip(img, 0, 1) * 255).round().astype(np.uint8)
+        if img.ndim == 2:
+            img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+        elif img.shape[2] == 2:
+            img = cv2.cvtColor(img[:, :, 0], cv2.COLOR_GRAY2BGR)
+        elif img.shape[2] == 4:
+            img = img[:, :, :3]
+        dst = out / (src.stem + ".png")
+        if dst.exists() and dst.name != src.name:
+            skipped[src.name] = f"name clash with {dst.name}"
+            continue
+        cv2.imwrite(str(dst), img)
+        how = "converted to 8-bit RGB"
+        if upright is not None:
+            how = "turned upright (EXIF orientation)"
+        log.info("photo %s %s as %s", src.name, how, dst.name)
         names.append(dst.name)
     return names, skipped
+
+
+def _exif_upright(src: Path) -> np.ndarray | None:
+    """A JPEG turned upright as its EXIF orientation says (8-bit BGR), or None when
+    it has none. COLMAP and our loader read the stored pixels as they are, so a
+    rotated phone photo is staged as an upright copy. Found by decoding at 1/8 size
+    with and without the orientation applied (OpenCV reads the tag itself)."""
+    if src.suffix.lower() not in (".jpg", ".jpeg"):
+        return None
+    turned = cv2.imread(str(src), cv2.IMREAD_REDUCED_COLOR_8)
+    stored = cv2.imread(
+        str(src), cv2.IMREAD_REDUCED_COLOR_8 | cv2.IMREAD_IGNORE_ORIENTATION
+    )
+    if turned is None or stored is None:
+        return None
+    if turned.shape == stored.shape and np.array_equal(turned, stored):
+        return None
+    return cv2.imread(str(src), cv2.IMREAD_COLOR)
 
 
 def _retrieval_pairs(db_path: Path, k: int, seed: int) -> list[tuple[str, str]]:
