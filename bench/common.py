@@ -112,3 +112,31 @@ def instrument_chain(scene: Path, work: Path, config: Path, variant: str = "male
 
     ctx = RunContext(work / "runs", load_config(config))
     return Chain(ctx, resolve_scene(ctx, None, scene), variant_sets(variant))
+
+
+def pose_error(est: dict, truth: dict) -> dict:
+    """Pose error of estimated cameras against the true ones after a Sim3 alignment
+    of the camera centres. Both map a photo name to (R camera-to-world [3, 3],
+    centre [3]); names in both count. Rotations in degrees, centres in the truth's
+    units."""
+    import numpy as np
+    import pycolmap
+
+    names = sorted(set(est) & set(truth))
+    e = np.array([est[n][1] for n in names], dtype=np.float64)
+    g = np.array([truth[n][1] for n in names], dtype=np.float64)
+    sim = pycolmap.estimate_sim3d(e, g)
+    rs = sim.rotation.matrix()
+    rot = []
+    for n in names:
+        d = (rs @ est[n][0]).T @ truth[n][0]
+        rot.append(np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1))))
+    centre = np.linalg.norm(np.array([sim * p for p in e]) - g, axis=1)
+    return dict(
+        posed=len(names),
+        rot_median_deg=float(np.median(rot)),
+        rot_p90_deg=float(np.percentile(rot, 90)),
+        rot_max_deg=float(np.max(rot)),
+        centre_median=float(np.median(centre)),
+        centre_max=float(np.max(centre)),
+    )

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import ROOT, Results, run_ptovs  # noqa: E402  (same folder)
+from common import ROOT, Results, pose_error, run_ptovs  # noqa: E402  (same folder)
 
 REAL = ROOT.parent / "shared" / "data" / "real"
 
@@ -67,32 +67,6 @@ def truth_cameras(src: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
             np.array(rows[7]),
         )
     return out
-
-
-def pose_error(views: list, truth: dict) -> dict:
-    """Rotation (deg) and centre error (m) after a Sim3 alignment of the centres."""
-    import pycolmap
-
-    views = [v for v in views if v.name in truth]
-    est = np.array(
-        [-(v.cam_from_world[:3, :3].T @ v.cam_from_world[:3, 3]) for v in views]
-    )
-    gt = np.array([truth[v.name][1] for v in views])
-    sim = pycolmap.estimate_sim3d(est, gt)
-    aligned = np.array([sim * p for p in est])
-    rot = []
-    for v in views:
-        # world_gt <- world_est rotation; the truth's R is camera-to-world
-        r_est_c2w = sim.rotation.matrix() @ v.cam_from_world[:3, :3].T
-        d = r_est_c2w.T @ truth[v.name][0]
-        rot.append(np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1))))
-    cerr = np.linalg.norm(aligned - gt, axis=1)
-    return dict(
-        rot_median_deg=float(np.median(rot)),
-        rot_max_deg=float(np.max(rot)),
-        centre_median_m=float(np.median(cerr)),
-        centre_max_m=float(np.max(cerr)),
-    )
 
 
 def picture(art_path: Path, scene, out: Path) -> list[float]:
@@ -160,7 +134,14 @@ def run_set(args: argparse.Namespace, name: str) -> dict:
         gaussians=m.get("gaussians"),
         test_views=[v.name for v in scene.test_views()],
     )
-    res.update(pose_error(scene.views, truth_cameras(src)))
+    est = {
+        v.name: (
+            v.cam_from_world[:3, :3].T,
+            -(v.cam_from_world[:3, :3].T @ v.cam_from_world[:3, 3]),
+        )
+        for v in scene.views
+    }
+    res.update(pose_error(est, truth_cameras(src)))
     res["picture"] = str((ROOT / "docs" / "img" / f"real_{tag}.jpg").relative_to(ROOT))
     picture(art, scene, ROOT / res["picture"])
     return res

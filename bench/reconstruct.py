@@ -30,6 +30,7 @@ import json
 import shutil
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -187,16 +188,19 @@ def sfm_part(work: Path, scene: Path) -> dict:
     return res
 
 
-def error_budget(work: Path, scene: Path, max_gaussians: int) -> list[tuple[str, dict]]:
+def error_budget(
+    work: Path, scene: Path, max_gaussians: int
+) -> Iterator[tuple[str, dict]]:
     """Issue 24's error budget at today's budget: the field as it is; the same
     cameras with every photo re-rendered without occluders (own appearance), and
     under one neutral appearance without occluders (the static ceiling of this
     capacity and schedule); and a larger Gaussian cap. Every row is scored against
     the same truth (test views: own embedding, true transient pixels excluded;
-    transfer: the world re-rendered under another photo's appearance)."""
+    transfer: the world re-rendered under another photo's appearance). Yields
+    each row as it is measured."""
     from ptovs.synthetic.generate import clean_scene
 
-    rows = [("today", run_config(work / "today", scene, []))]
+    yield "today", run_config(work / "today", scene, [])
     for label, appearance in (("no-occluders", "own"), ("static", "neutral")):
         folder = work / "data" / label / scene.name
         if not (folder / "dense" / "images").is_dir():
@@ -205,10 +209,9 @@ def error_budget(work: Path, scene: Path, max_gaussians: int) -> list[tuple[str,
         r["mask_auroc"] = None  # no occluders left to find
         if appearance == "neutral":  # every photo looks alike: nothing to transfer
             r["transfer_psnr"] = None
-        rows.append((label, r))
+        yield label, r
     sets = [f"max_gaussians={max_gaussians}"]
-    rows.append((f"cap {max_gaussians}", run_config(work / "cap", scene, sets)))
-    return rows
+    yield f"cap {max_gaussians}", run_config(work / "cap", scene, sets)
 
 
 def presets_part(work: Path, scene: Path, iterations: int) -> list[dict]:
