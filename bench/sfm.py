@@ -52,7 +52,7 @@ def run_variant(scene: Path, work: Path, overrides: dict) -> dict:
     work.mkdir(parents=True)
     t0 = time.perf_counter()
     try:
-        report = run_sfm(scene / "dense" / "images", work, config)
+        report = run_sfm(scene / "dense" / "images", work, config)["report"]
     except Exception as exc:  # noqa: BLE001 - a variant that fails is a row too
         return dict(error=str(exc)[:300], seconds=round(time.perf_counter() - t0, 1))
     seconds = time.perf_counter() - t0
