@@ -140,3 +140,9 @@ def pose_error(est: dict, truth: dict) -> dict:
         centre_median=float(np.median(centre)),
         centre_max=float(np.max(centre)),
     )
+
+
+def print_header(*columns: str) -> None:
+    """A markdown table's header and rule line."""
+    print("| " + " | ".join(columns) + " |")
+    print("|" + "---|" * len(columns), flush=True)

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import ROOT, Results, pose_error, run_ptovs  # noqa: E402  (same folder)
+from common import ROOT, Results, pose_error, print_header, run_ptovs  # noqa: E402  (same folder)
 
 REAL = ROOT.parent / "shared" / "data" / "real"
 
@@ -156,11 +156,10 @@ def main() -> None:
     p.add_argument("--work", type=Path, default=ROOT / "work" / "real")
     args = p.parse_args()
     res = Results(args.work / "bench_real.json")
-    print(
-        "| set | photos | registered | r, working size | SfM + train wall (s) | "
-        "s/it | peak RSS (MB) | PSNR train / held-out | rotation median (°) |"
-    )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print_header(
+        "set", "photos", "registered", "r, working size", "SfM + train wall (s)",
+        "s/it", "peak RSS (MB)", "PSNR train / held-out", "rotation median (°)",
+    )  # fmt: skip
     for name in args.sets:
         r = run_set(args, name)
         key = f"{name}/{args.megapixels:g}mp/{args.iterations or 'default'}"

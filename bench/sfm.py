@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import ROOT, Results, bench_scene, pose_error  # noqa: E402  (same folder)
+from common import ROOT, Results, bench_scene, pose_error, print_header  # noqa: E402  (same folder)
 
 
 def parse_variant(text: str) -> dict:
@@ -107,11 +107,10 @@ def main() -> None:
     p.add_argument("--work", type=Path, default=ROOT / "work" / "sfm")
     args = p.parse_args()
     res = Results(args.work / "bench_sfm.json")
-    print(
-        "| seed | variant | registered | models (largest) | features | verified "
-        "pairs | s | rotation median / p90 (°) |"
-    )
-    print("|---|---|---|---|---|---|---|---|")
+    print_header(
+        "seed", "variant", "registered", "models (largest)", "features",
+        "verified pairs", "s", "rotation median / p90 (°)",
+    )  # fmt: skip
     for seed in args.seeds:
         scene = bench_scene(args.data, seed)
         for variant in args.variants:
