@@ -198,7 +198,7 @@ def pictures_part(work: Path, scene: Path, text: str, docs: Path) -> dict:
     from ptovs.apps import close_inputs
     from ptovs.apps.select import select_gaussians
     from ptovs.config import load_config
-    from ptovs.raster import Camera, Gaussians
+    from ptovs.raster import Camera
     from ptovs.stage import Chain, RunContext, resolve_scene
     from ptovs.visual import to_uint8, write_png
 
@@ -211,12 +211,7 @@ def pictures_part(work: Path, scene: Path, text: str, docs: Path) -> dict:
     cam = Camera.from_view(view)
     emb = field.embeddings_of([view.name])
     full = field.render(cam, emb)[0]
-    keep = torch.from_numpy(sel.mask)
-    g = field.gaussians
-    only = Gaussians(g.means[keep], g.quats[keep], g.scales[keep], g.opacities[keep])
-    sub = type(field)(
-        only, field.sh[keep], field.sh_degree, field.nets, field.embeddings
-    )
+    sub = field.subset(torch.from_numpy(sel.mask))
     part = sub.render(cam, emb)[0]
     photo = ref.load().load_image(view)
     row = np.hstack([to_uint8(photo), to_uint8(full.numpy()), to_uint8(part.numpy())])

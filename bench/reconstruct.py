@@ -16,6 +16,8 @@ Parts:
            centre error after a Sim3 alignment; then PSNR trained on the SfM poses
   presets  s/iteration, Gaussians and peak RSS of the `cpu` and `authors` presets,
            and PSNR of both at equal (short) budgets
+  variants one run per --variant LABEL:KEY=V[,KEY=V...] (e.g.
+           --variant affine:appearance=affine), the default's figures each
   errors   the error budget (issue 24): today's field; the photos re-rendered
            without occluders; under one neutral appearance without occluders
            (the static ceiling); a larger Gaussian cap (--max-gaussians)
@@ -240,6 +242,12 @@ def main() -> None:
     ap.add_argument("--budgets", nargs="+", type=int, default=[1000, 2000, 4000])
     ap.add_argument("--preset-iterations", type=int, default=200)
     ap.add_argument("--max-gaussians", type=int, default=50000, help="errors: the cap")
+    ap.add_argument(
+        "--variant",
+        action="append",
+        default=[],
+        help="variants: LABEL:KEY=V[,KEY=V...] (reconstruct --set values)",
+    )
     ap.add_argument("--data", type=Path, default=ROOT / "data")
     ap.add_argument("--work", type=Path, default=ROOT / "work" / "bench")
     args = ap.parse_args()
@@ -268,6 +276,22 @@ def main() -> None:
                 f"{r['transfer_psnr']:.2f} | – | {r['gaussians']} | {r['peak_rss_mb']} |",
                 flush=True,
             )
+        if "variants" in args.parts:
+            for spec in args.variant:
+                label, _, sets = spec.partition(":")
+                r = run_config(
+                    args.work / "variants" / label,
+                    scene,
+                    [x for x in sets.split(",") if x],
+                )
+                results[f"variant_{label}_s{seed}"] = r
+                save()
+                print(
+                    f"| {label} | {seed} | {r['wall_s']} | {r['test_psnr']:.2f} | "
+                    f"{r['transfer_psnr']:.2f} | {r['mask_auroc']:.3f} | "
+                    f"{r['gaussians']} | {r['psnr_train']:.2f} |",
+                    flush=True,
+                )
         if "errors" in args.parts:
             for label, r in error_budget(
                 args.work / "errors", scene, args.max_gaussians

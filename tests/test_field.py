@@ -341,3 +341,152 @@ def test_visible_only_delta_matches_full_for_drawn_gaussians():
     vis = in_frustum(g.means, cam)
     assert bool(vis[drawn].all())
     torch.testing.assert_close(a[drawn], b[drawn])
+
+
+# --------------------------------------------------------- affine appearance
+
+
+def test_affine_appearance_is_the_colour_map_it_claims():
+    """ΔSH of the affine head = (1 + a)·colour + b after eval_sh (float64)."""
+    from ptovs.nets.wild import GAUSS_DIM
+    from ptovs.raster import eval_sh
+
+    torch.manual_seed(0)
+    nets = WildNets("cpu", 16, appearance="affine").double()
+    n = 40
+    sh = 0.1 * torch.randn(n, 16, 3, dtype=torch.float64)
+    sh[:, 0] = 0.5  # colours well inside (0, 1): eval_sh's clamp stays off
+    gauss = torch.randn(n, GAUSS_DIM, dtype=torch.float64)
+    emb = torch.randn(32, dtype=torch.float64)
+    means = torch.randn(n, 3, dtype=torch.float64)
+    assert float(nets.delta_sh(sh, means, emb, gauss).abs().max()) == 0.0  # identity
+    torch.nn.init.normal_(nets.f_gamma.out.weight, std=0.05)
+    torch.nn.init.normal_(nets.f_gamma.out.bias, std=0.05)
+    delta = nets.delta_sh(sh, means, emb, gauss)
+    dirs = torch.randn(n, 3, dtype=torch.float64)
+    base = eval_sh(3, sh, dirs)
+    assert float(base.min()) > 0
+    net = nets.f_gamma
+    x = torch.cat((gauss, emb.expand(n, -1), sh[:, 0] * 0.28209479177387814 + 0.5), 1)
+    ab = net.out(torch.relu(net.fc2(torch.relu(net.fc1(x)))))
+    want = (1 + ab[:, :3]) * base + ab[:, 3:]
+    got = eval_sh(3, sh + delta, dirs)
+    keep = want.min(1).values > 0  # the clamp at 0 acts after the map
+    assert int(keep.sum()) > n // 2
+    torch.testing.assert_close(got[keep], want[keep], rtol=1e-10, atol=1e-10)
+    with pytest.raises(ValueError, match="per-Gaussian"):
+        nets.delta_sh(sh, means, emb)
+
+
+def test_affine_embeddings_follow_densify_and_subset():
+    torch.manual_seed(0)
+    m = GaussianModel.from_points(*_points(50), 1, LearningRates(), 1.0, embed_dim=16)
+    assert m.params["app_embed"].shape == (50, 16)
+    _step(m)
+    emb0 = m.params["app_embed"].detach().clone()
+    grads = torch.zeros(50)
+    grads[:10] = 1.0
+    m.densify(grads, 0.5, 0.01, torch.Generator().manual_seed(0), 1000)
+    assert m.params["app_embed"].shape[0] == len(m) > 50
+    keep = torch.ones(len(m), dtype=torch.bool)
+    keep[-1] = False  # a new child goes
+    m.keep(keep)
+    assert m.params["app_embed"].shape[0] == len(m)
+    # every row is a copy of its parent's; the untouched (10..49) appear once
+    now = m.params["app_embed"].detach()
+    same = (now[:, None, :] == emb0[None, :, :]).all(-1)  # [N now, 50]
+    assert bool(same.any(1).all())
+    assert bool((same[:, 10:].sum(0) == 1).all())
+    field = _field()
+    field.gauss_embed = torch.randn(len(field), 16)
+    half = field.subset(torch.arange(len(field)) % 2 == 0)
+    assert len(half) == len(field.gauss_embed[::2]) == len(half.gauss_embed)
+
+
+# ------------------------------------------------------------ adaptive budget
+
+
+def _growth_state(n0=1000):
+    from ptovs.field.train import TrainState
+
+    m = GaussianModel.from_points(*_points(n0), 0, LearningRates(), 1.0)
+    bg = torch.zeros(3, requires_grad=True)
+    return TrainState(m, None, None, bg, torch.optim.Adam([bg]))
+
+
+def _cfg(e):
+    from ptovs.stages.reconstruct import Config
+
+    return Config(growth_elasticity=e, mask_warmup=0, opacity_reset_every=10_000)
+
+
+@pytest.mark.parametrize(("loss_ratio", "stops"), [(0.95, True), (0.80, False)])
+def test_growth_stops_when_loss_elasticity_is_low(loss_ratio, stops):
+    """N doubles (1000 -> 2000) while L1 goes 0.1 -> 0.1·ratio: e = −ln(ratio)/ln 2
+    = 0.074 (stop at 0.1) or 0.32 (go on)."""
+    from ptovs.field.train import _growth_check
+
+    state = _growth_state()
+    cfg = _cfg(0.1)
+    state.window = [10.0, 100.0]  # mean L1 0.1 at 1000 Gaussians
+    _growth_check(cfg, state, 100)
+    assert state.growing
+    state.model.append({k: v.detach() for k, v in state.model.params.items()})
+    state.window = [10.0 * loss_ratio, 100.0]
+    _growth_check(cfg, state, 200)
+    assert state.growing is not stops
+    assert [r[1] for r in state.rounds] == [1000, 2000]
+    assert state.window == [0.0, 0.0]
+    # off (0) never stops; a reset between the rounds is not compared
+    off = _growth_state()
+    for step, n_mult in ((100, 1), (200, 2)):
+        if n_mult == 2:
+            off.model.append({k: v.detach() for k, v in off.model.params.items()})
+        off.window = [10.0, 100.0]
+        _growth_check(_cfg(0.0), off, step)
+    assert off.growing
+
+
+def test_growth_check_skips_rounds_across_an_opacity_reset():
+    from ptovs.field.train import _growth_check
+    from ptovs.stages.reconstruct import Config
+
+    state = _growth_state()
+    cfg = Config(growth_elasticity=0.1, mask_warmup=0, opacity_reset_every=150)
+    state.window = [10.0, 100.0]
+    _growth_check(cfg, state, 100)
+    state.model.append({k: v.detach() for k, v in state.model.params.items()})
+    state.window = [10.0, 100.0]  # no gain at all, but a reset at 150 lies between
+    _growth_check(cfg, state, 200)
+    assert state.growing
+
+
+def test_colour_map_renders_as_it_bakes():
+    """The per-image colour map applied to the image equals the field rendered
+    from SH with the map baked in (export-ply, roam), sky included."""
+    from ptovs.field.export import baked_sh
+    from ptovs.field.render import ray_dirs
+
+    torch.manual_seed(1)
+    field = _field()
+    nets = WildNets("cpu", 16, delta_scale=4.0, color_map=True)
+    nets.load_state_dict(field.nets.state_dict(), strict=False)
+    torch.nn.init.normal_(nets.f_gamma.out.weight, std=0.002)  # small ΔSH: no clamp
+    torch.nn.init.normal_(nets.f_map.weight, std=0.05)
+    torch.nn.init.normal_(nets.f_map.bias, std=0.05)
+    field.nets = nets
+    field.sh[:, 0] = 0.0  # colours near 1/2: eval_sh's clamp stays off
+    field.sh[:, 1:] *= 0.05
+    cam = _camera()
+    emb = field.embeddings_of(["a"])
+    img = field.render(cam, emb)[0]
+    g = field.gaussians
+    cols = gaussian_colors(g.means, baked_sh(field, "a"), 3, cam)
+    out = render(g, cam, cols, depth=False)
+    sky = nets.map_colors(nets.background(ray_dirs(cam), emb[0]), emb[0])
+    want = (out.image + (1 - out.alpha) * sky).clamp(0, 1)
+    torch.testing.assert_close(img, want, rtol=1e-4, atol=1e-4)
+    # a black-and-white photo is one matrix: every row the luminance weights
+    m, _ = nets.color_matrix(emb[0])
+    assert m.shape == (3, 3)
+    assert nets.map_colors(torch.ones(2, 3), emb[0]).shape == (2, 3)

@@ -179,7 +179,9 @@ def roam_frames(
             alpha = out.alpha[..., 0]
             rgb = out.image[..., :3]
             if field.wild and field.nets.sky is not None and emb is not None:
-                sky = field.nets.background(ray_dirs(cam), emb)
+                sky = field.nets.map_colors(
+                    field.nets.background(ray_dirs(cam), emb), emb
+                )
                 rgb = rgb + (1.0 - alpha)[..., None] * sky
             elif field.background is not None:
                 rgb = rgb + (1.0 - alpha)[..., None] * field.background

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ptovs.field.model import SH_C0
 from ptovs.field.ply import write_ply
 from ptovs.field.render import WildField
 
@@ -20,7 +21,7 @@ def appearance_embedding(field: WildField, image: str | None = None) -> torch.Te
 
 
 def baked_sh(field: WildField, image: str | None = None) -> torch.Tensor:
-    """SH [N, K, 3] with ΔSH of `image`'s embedding (or the neutral one) added.
+    """SH [N, K, 3] with ΔSH (or the affine map, written as ΔSH) and the colour map of `image`'s embedding (or the neutral one) added.
 
     A plain field (no networks) returns its SH unchanged.
     """
@@ -29,7 +30,15 @@ def baked_sh(field: WildField, image: str | None = None) -> torch.Tensor:
     emb = appearance_embedding(field, image)
     with torch.no_grad():
         field.nets.eval()
-        return field.sh + field.nets.delta_sh(field.sh, field.gaussians.means, emb)
+        sh = field.sh + field.nets.delta_sh(
+            field.sh, field.gaussians.means, emb, field.gauss_embed
+        )
+        mt = field.nets.color_matrix(emb)
+        if mt is not None:  # colour = SH·basis + 1/2 -> M·colour + t, exactly
+            m, t = mt
+            sh = sh @ m.T
+            sh[:, 0] += (m @ torch.full((3,), 0.5) + t - 0.5) / SH_C0
+        return sh
 
 
 def export_field_ply(

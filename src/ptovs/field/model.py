@@ -19,6 +19,7 @@ from ptovs.raster import Gaussians
 
 SH_C0 = 0.28209479177387814
 NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
+APP_EMBED = "app_embed"  # optional per-Gaussian appearance embedding [N, G]
 
 
 def rgb_to_sh(rgb: Tensor) -> Tensor:
@@ -53,6 +54,7 @@ class LearningRates:
     opacity: float = 0.05
     scaling: float = 5e-3
     rotation: float = 1e-3
+    app_embed: float = 5e-3
 
 
 class GaussianModel:
@@ -68,10 +70,12 @@ class GaussianModel:
         self.sh_degree = sh_degree
         self.lr = lr
         self.extent = float(extent)
+        names = NAMES + ((APP_EMBED,) if APP_EMBED in params else ())
         self.params = {
-            k: params[k].detach().clone().float().requires_grad_(True) for k in NAMES
+            k: params[k].detach().clone().float().requires_grad_(True) for k in names
         }
         lrs = {
+            APP_EMBED: lr.app_embed,
             "means": lr.means * self.extent,
             "quats": lr.rotation,
             "log_scales": lr.scaling,
@@ -80,7 +84,7 @@ class GaussianModel:
             "sh_rest": lr.sh_rest,
         }
         self.opt = torch.optim.Adam(
-            [{"params": [self.params[k]], "lr": lrs[k], "name": k} for k in NAMES],
+            [{"params": [self.params[k]], "lr": lrs[k], "name": k} for k in names],
             lr=0.0,
             eps=1e-15,
         )
@@ -95,8 +99,10 @@ class GaussianModel:
         lr: LearningRates,
         extent: float,
         init_opacity: float = 0.1,
+        embed_dim: int = 0,
     ) -> GaussianModel:
-        """3DGS initialisation from a sparse point cloud."""
+        """3DGS initialisation from a sparse point cloud; `embed_dim` > 0 adds a
+        per-Gaussian appearance embedding, N(0, 0.1²) from torch's global RNG."""
         means = torch.as_tensor(np.asarray(xyz), dtype=torch.float32)
         n = means.shape[0]
         k = (sh_degree + 1) ** 2
@@ -110,6 +116,8 @@ class GaussianModel:
             "sh_dc": rgb_to_sh(colors)[:, None, :],
             "sh_rest": torch.zeros(n, k - 1, 3),
         }
+        if embed_dim:
+            params[APP_EMBED] = 0.1 * torch.randn(n, embed_dim)
         return cls(params, sh_degree, lr, extent)
 
     def __len__(self) -> int:

@@ -80,6 +80,7 @@ def gaussian_colors(
     nets: WildNets | None = None,
     embedding: Tensor | None = None,  # [D]
     visible_only: bool = True,
+    gauss: Tensor | None = None,  # [N, G] per-Gaussian embeddings (affine)
 ) -> Tensor:
     """RGB [N, 3] of every Gaussian seen from `cam`, with ΔSH when nets are given."""
     if nets is not None and embedding is not None and means.shape[0]:
@@ -87,10 +88,11 @@ def gaussian_colors(
         if visible_only:
             idx = torch.nonzero(in_frustum(means.detach(), cam)).squeeze(1)
             if idx.numel():
-                delta = nets.delta_sh(sh[idx], means.detach()[idx], embedding)
+                g_idx = None if gauss is None else gauss[idx]
+                delta = nets.delta_sh(sh[idx], means.detach()[idx], embedding, g_idx)
                 sh = sh.index_add(0, idx, delta)
         else:
-            sh = sh + nets.delta_sh(sh, means.detach(), embedding)
+            sh = sh + nets.delta_sh(sh, means.detach(), embedding, gauss)
     dirs = means - camera_center(cam).to(means)
     return eval_sh(min(degree, 3), sh, dirs)
 
@@ -106,9 +108,25 @@ class WildField:
     embeddings: dict[str, Tensor] = field(default_factory=dict)
     background: Tensor | None = None  # [3] constant (plain 3DGS); None = from nets
     metrics: dict = field(default_factory=dict)
+    gauss_embed: Tensor | None = None  # [N, G] (affine appearance only)
 
     def __len__(self) -> int:
         return len(self.gaussians)
+
+    def subset(self, keep: Tensor) -> WildField:
+        """The field with only the Gaussians in `keep` (bool [N] or indices)."""
+        g = self.gaussians
+        cut = Gaussians(g.means[keep], g.quats[keep], g.scales[keep], g.opacities[keep])
+        return WildField(
+            cut,
+            self.sh[keep],
+            self.sh_degree,
+            self.nets,
+            self.embeddings,
+            self.background,
+            self.metrics,
+            None if self.gauss_embed is None else self.gauss_embed[keep],
+        )
 
     @property
     def wild(self) -> bool:
@@ -164,7 +182,15 @@ class WildField:
             return out.image.clamp(0, 1)[None]
         self.nets.eval()
         cols = [
-            gaussian_colors(g.means, self.sh, self.sh_degree, cam, self.nets, emb)
+            gaussian_colors(
+                g.means,
+                self.sh,
+                self.sh_degree,
+                cam,
+                self.nets,
+                emb,
+                gauss=self.gauss_embed,
+            )
             for emb in embeddings
         ]
         out = render(g, cam, torch.cat(cols, 1), backend=backend, depth=False)
@@ -174,6 +200,13 @@ class WildField:
             dirs = ray_dirs(cam)
             sky = torch.stack([self.nets.background(dirs, emb) for emb in embeddings])
             img = img + (1.0 - out.alpha)[None] * sky
+        if self.nets.f_map is not None:
+            img = torch.stack(
+                [
+                    self.nets.map_colors(im, emb)
+                    for im, emb in zip(img, embeddings, strict=True)
+                ]
+            )
         return img.clamp(0, 1).contiguous()
 
     # ----------------------------------------------------------------- loading
@@ -205,6 +238,10 @@ class WildField:
                 delta_scale=cfg.get("delta_sh_scale", 1.0)
                 if not cfg.get("import_dir")
                 else 1.0,
+                appearance="delta-sh"
+                if cfg.get("import_dir")
+                else cfg.get("appearance", "delta-sh"),
+                color_map="f_map.weight" in state,
             )
             nets.load_state_dict(state)
             nets.eval()
@@ -221,4 +258,7 @@ class WildField:
         metrics = (
             read_json_dataset(root["metrics_json"]) if "metrics_json" in root else {}
         )
-        return cls(g, sh, degree, nets, embeddings, bg, metrics)
+        gauss = (
+            torch.from_numpy(root["app_embed"]).float() if "app_embed" in root else None
+        )
+        return cls(g, sh, degree, nets, embeddings, bg, metrics, gauss)

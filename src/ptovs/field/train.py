@@ -26,7 +26,7 @@ from torch.nn import functional as F  # noqa: N812
 from tqdm import tqdm
 
 from ptovs.field.losses import psnr, ssim
-from ptovs.field.model import GaussianModel, LearningRates
+from ptovs.field.model import APP_EMBED, GaussianModel, LearningRates
 from ptovs.field.render import composite_background, gaussian_colors, in_frustum
 from ptovs.nets import WildNets
 from ptovs.progress import CHECKPOINT_S, Heartbeat
@@ -53,6 +53,11 @@ class TrainState:
         default_factory=lambda: {"step": [], "loss": [], "psnr": [], "n": [], "sec": []}
     )
     seconds: float = 0.0
+    # the adaptive budget: L1 summed since the last densification round, and one
+    # [step, Gaussians, mean L1] record per round; growing turns false for good
+    window: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    rounds: list[list[float]] = field(default_factory=list)
+    growing: bool = True
 
     def to_dict(self) -> dict[str, Any]:
         """Tensors and plain containers only (loadable with weights_only=True)."""
@@ -68,6 +73,9 @@ class TrainState:
             "grad_denom": self.grad_denom.clone(),
             "history": {k: list(v) for k, v in self.history.items()},
             "seconds": self.seconds,
+            "window": list(self.window),
+            "rounds": [list(r) for r in self.rounds],
+            "growing": self.growing,
         }
 
 
@@ -85,7 +93,6 @@ def _new_state(
     cfg: Any, points: tuple[np.ndarray, np.ndarray], extent: float
 ) -> TrainState:
     lr = LearningRates()
-    model = GaussianModel.from_points(points[0], points[1], cfg.sh_degree, lr, extent)
     nets, nets_opt = None, None
     if cfg.wild:
         nets = WildNets(
@@ -93,7 +100,18 @@ def _new_state(
             (cfg.sh_degree + 1) ** 2,
             mask_concat=cfg.mask_concat,
             delta_scale=cfg.delta_sh_scale,
+            appearance=cfg.appearance,
+            color_map=cfg.color_map,
         )
+    model = GaussianModel.from_points(
+        points[0],
+        points[1],
+        cfg.sh_degree,
+        lr,
+        extent,
+        embed_dim=nets.gauss_dim if nets is not None else 0,
+    )
+    if nets is not None:
         nets_opt = torch.optim.Adam(
             [
                 {"params": nets.f_alpha.parameters(), "lr": cfg.lr_alpha},
@@ -101,6 +119,11 @@ def _new_state(
                 {"params": nets.f_gamma.parameters(), "lr": cfg.lr_gamma},
                 {"params": nets.sky.parameters(), "lr": cfg.lr_alpha},
             ]
+            + (
+                [{"params": nets.map_parameters(), "lr": cfg.lr_gamma}]
+                if cfg.color_map
+                else []
+            )
         )
     background = torch.zeros(3, requires_grad=True)
     bg_opt = torch.optim.Adam([background], lr=1e-2)
@@ -134,6 +157,9 @@ def _restore(state: TrainState, saved: dict[str, Any]) -> None:
     state.grad_denom = saved["grad_denom"].clone()
     state.history = {k: list(v) for k, v in saved["history"].items()}
     state.seconds = float(saved["seconds"])
+    state.window = list(saved.get("window", [0.0, 0.0]))
+    state.rounds = [list(r) for r in saved.get("rounds", [])]
+    state.growing = bool(saved.get("growing", True))
 
 
 def view_order(step: int, n: int, seed: int) -> int:
@@ -208,20 +234,31 @@ def train(
             emb = nets.embed(a_in[None], mask_lo.detach())[0]
         g = model.gaussians()
         cols = gaussian_colors(
-            g.means, model.sh, degree, cam, nets, emb, visible_only=cfg.visible_only
+            g.means,
+            model.sh,
+            degree,
+            cam,
+            nets,
+            emb,
+            visible_only=cfg.visible_only,
+            gauss=model.params.get(APP_EMBED),
         )
         bg = torch.sigmoid(state.background) if nets is None else None
         out = render(g, cam, cols, background=bg, backend=cfg.backend, depth=False)
         out.means2d.retain_grad()
         pred = out.image
         if nets is not None:
-            pred = composite_background(pred, out.alpha, cam, nets, emb)
+            pred = nets.map_colors(
+                composite_background(pred, out.alpha, cam, nets, emb), emb
+            )
         loss = _photo_loss(cfg, pred, gt, mask_lo if masked else None)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"non-finite loss at iteration {step} (view {i})")
         loss.backward()
 
         _accumulate_grads(state, out.means2d.grad, out.radii, cam)
+        state.window[0] += float((pred.detach() - gt).abs().mean())
+        state.window[1] += 1.0
         for opt in (model.opt, state.nets_opt if nets is not None else state.bg_opt):
             opt.step()
             opt.zero_grad(set_to_none=True)
@@ -298,11 +335,16 @@ def _densify_schedule(cfg: Any, state: TrainState, step: int) -> None:
     if until <= step or step < cfg.densify_from:
         return
     if step % cfg.densify_every == 0:
+        _growth_check(cfg, state, step)
         grads = state.grad_accum / state.grad_denom.clamp_min(1)
         gen = torch.Generator().manual_seed(cfg.seed * 7_919 + step)
         n0 = len(model)
         cloned, split = model.densify(
-            grads, cfg.densify_grad, cfg.percent_dense, gen, cfg.max_gaussians
+            grads,
+            cfg.densify_grad,
+            cfg.percent_dense,
+            gen,
+            cfg.max_gaussians if state.growing else n0,
         )
         with torch.no_grad():
             opac = torch.sigmoid(model.params["opacity_logits"])
@@ -326,6 +368,53 @@ def _densify_schedule(cfg: Any, state: TrainState, step: int) -> None:
         state.grad_denom = torch.zeros(len(model))
     if step % cfg.opacity_reset_every == 0:
         model.reset_opacity()
+
+
+GROWTH_SPAN = 1.25  # compare rounds at least this factor apart in Gaussian count
+
+
+def _growth_check(cfg: Any, state: TrainState, step: int) -> None:
+    """The adaptive budget: stop growing when growth no longer pays.
+
+    Each densification round records the mean L1 of the photos since the round
+    before. Against the latest earlier round with at most 1/GROWTH_SPAN of
+    today's Gaussians (and no opacity reset or mask start in between), the loss
+    elasticity e = −Δln L / Δln N says what the added Gaussians bought; below
+    `cfg.growth_elasticity` growth stops for the rest of the run (pruning goes
+    on). `max_gaussians` stays the hard ceiling either way. Deterministic: it
+    reads losses only.
+    """
+    total, count = state.window
+    state.window = [0.0, 0.0]
+    if count == 0:
+        return
+    n, loss = len(state.model), total / count
+    state.rounds.append([float(step), float(n), loss])
+    if not state.growing or cfg.growth_elasticity <= 0:
+        return
+    every = cfg.densify_every
+    for s_j, n_j, l_j in reversed(state.rounds[:-1]):
+        window_start = s_j - 2 * every  # the round after a break is off too
+        breaks = [cfg.mask_warmup] + list(
+            range(cfg.opacity_reset_every, step + 1, cfg.opacity_reset_every)
+        )
+        if any(window_start < b <= step for b in breaks if b > 0):
+            return  # a reset or the mask start lies between: not comparable
+        if n_j * GROWTH_SPAN <= n:
+            e = -(np.log(loss) - np.log(l_j)) / (np.log(n) - np.log(n_j))
+            if e < cfg.growth_elasticity:
+                state.growing = False
+                log.info(
+                    "step %d: growth stops at %d Gaussians (loss elasticity %.3f "
+                    "< %.3f since step %d, %d Gaussians)",
+                    step,
+                    n,
+                    e,
+                    cfg.growth_elasticity,
+                    int(s_j),
+                    int(n_j),
+                )
+            return
 
 
 @torch.no_grad()

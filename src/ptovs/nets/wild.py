@@ -6,6 +6,9 @@
   `delta_scale` multiplies the tanh: the authors' 1 bounds the DC colour change
   at ±C0 = ±0.28, too little to turn a sunlit façade into a night photo; ptovs
   trains with a larger bound by default (stage option `delta_sh_scale`).
+- or, with `appearance="affine"`, `AffineColorNet`: per Gaussian (learned
+  embedding g, l, base colour) -> a per-channel affine colour map (WildGaussians'
+  form), written as the ΔSH it equals.
 
 Two presets with the same structure: `authors` (exactly the released layer sizes:
 256² inputs, widths 128…512, FC256; needed to import their checkpoints) and `cpu`
@@ -24,6 +27,10 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 from torch.nn import functional as F  # noqa: N812
+
+SH_C0 = 0.28209479177387814
+APPEARANCES = ("delta-sh", "affine")
+GAUSS_DIM = 16  # per-Gaussian embedding of the affine appearance
 
 
 @dataclass(frozen=True)
@@ -226,6 +233,40 @@ class ColorNet(nn.Module):
         return delta.reshape(n, self.n_coeffs, 3)
 
 
+class AffineColorNet(nn.Module):
+    """Appearance as a per-channel affine colour map (after WildGaussians).
+
+    Per Gaussian k: (a_k, b_k) = MLP(g_k, l, c̄_k) with g_k a learned per-Gaussian
+    embedding, l the image's embedding and c̄_k the Gaussian's base (DC) colour;
+    the colour under l is (1 + a_k)·c_k + b_k. Exposure, tint and white balance
+    are one shared multiplication, which ΔSH must learn colour by colour; g_k lets
+    shading (sun direction) vary over the surface. The last layer starts at zero:
+    identity at the start. As ΔSH of the same map: a·SH, plus (a/2 + b)/C0 on the
+    DC term (colour = SH·basis + 1/2), so it bakes exactly into a PLY.
+    """
+
+    def __init__(self, embed_dim: int, gauss_dim: int, width: int):
+        super().__init__()
+        self.gauss_dim = gauss_dim
+        self.fc1 = nn.Linear(gauss_dim + embed_dim + 3, width)
+        self.fc2 = nn.Linear(width, width)
+        self.out = nn.Linear(width, 6)
+
+    def forward(
+        self, sh: Tensor, means: Tensor, embedding: Tensor, gauss: Tensor
+    ) -> Tensor:
+        """sh [n, K, 3], gauss [n, G], embedding [D] -> ΔSH [n, K, 3]."""
+        n = sh.shape[0]
+        base = sh[:, 0] * SH_C0 + 0.5
+        x = torch.cat((gauss, embedding.reshape(1, -1).expand(n, -1), base), 1)
+        x = self.out(F.relu(self.fc2(F.relu(self.fc1(x)))))
+        a, b = x[:, None, :3], x[:, 3:]
+        delta = sh * a
+        return torch.cat(
+            (delta[:, :1] + ((0.5 * a[:, 0] + b) / SH_C0)[:, None], delta[:, 1:]), 1
+        )
+
+
 class SkyNet(nn.Module):
     """Sky colour per pixel from the ray direction and the embedding (ours).
 
@@ -262,6 +303,8 @@ class WildNets(nn.Module):
         mask_concat: str = "features",
         background: bool = True,
         delta_scale: float = 1.0,
+        appearance: str = "delta-sh",
+        color_map: bool = False,
     ):
         super().__init__()
         self.preset = PRESETS[preset] if isinstance(preset, str) else preset
@@ -270,10 +313,20 @@ class WildNets(nn.Module):
             raise ValueError("beta_res must be divisible by 2**(len(beta_widths) - 1)")
         self.f_alpha = AppearanceEncoder(p.alpha_widths, p.embed_dim, mask_concat)
         self.f_beta = TransientNet(p.beta_widths)
-        self.f_gamma = ColorNet(n_coeffs, p, delta_scale)
+        if appearance not in APPEARANCES:
+            raise ValueError(f"appearance must be one of {APPEARANCES}: {appearance!r}")
+        self.appearance = appearance
+        if appearance == "affine":
+            self.f_gamma = AffineColorNet(p.embed_dim, GAUSS_DIM, 2 * p.gamma_width)
+        else:
+            self.f_gamma = ColorNet(n_coeffs, p, delta_scale)
         self.sky = SkyNet(p.embed_dim) if background else None
         nn.init.zeros_(self.f_gamma.out.weight)  # ΔSH = 0 at the start
         nn.init.zeros_(self.f_gamma.out.bias)
+        self.f_map = nn.Linear(p.embed_dim, 12) if color_map else None
+        if self.f_map is not None:  # the identity map at the start
+            nn.init.zeros_(self.f_map.weight)
+            nn.init.zeros_(self.f_map.bias)
 
     @property
     def embed_dim(self) -> int:
@@ -304,8 +357,49 @@ class WildNets(nn.Module):
             return dirs.new_zeros(dirs.shape)
         return self.sky(dirs, embedding)
 
-    def delta_sh(self, sh: Tensor, means: Tensor, embedding: Tensor) -> Tensor:
-        """ΔSH [n, K, 3] for n Gaussians under embedding [D]."""
+    def color_matrix(self, embedding: Tensor) -> tuple[Tensor, Tensor] | None:
+        """The image's colour map (M [3, 3], t [3]): colour -> M·colour + t, or None.
+
+        A linear map of every Gaussian's colour and of the sky is the same map
+        of the rendered image (the blend weights and T sum to 1), so it applies
+        to images after compositing and bakes exactly into SH. One 3×3 matrix
+        holds exposure, tint and black-and-white or sepia filters.
+        """
+        if self.f_map is None:
+            return None
+        x = self.f_map(embedding.reshape(-1))
+        eye = torch.eye(3, dtype=x.dtype, device=x.device)
+        return eye + x[:9].reshape(3, 3), x[9:]
+
+    def map_colors(self, rgb: Tensor, embedding: Tensor) -> Tensor:
+        """[..., 3] colours through the image's colour map (unchanged without one)."""
+        mt = self.color_matrix(embedding)
+        if mt is None:
+            return rgb
+        m, t = mt
+        return rgb @ m.T + t
+
+    def map_parameters(self) -> list[nn.Parameter]:
+        """The colour map's parameters (none without one)."""
+        return [] if self.f_map is None else list(self.f_map.parameters())
+
+    @property
+    def gauss_dim(self) -> int:
+        """Width of the per-Gaussian embedding the appearance needs (0: none)."""
+        return GAUSS_DIM if self.appearance == "affine" else 0
+
+    def delta_sh(
+        self, sh: Tensor, means: Tensor, embedding: Tensor, gauss: Tensor | None = None
+    ) -> Tensor:
+        """ΔSH [n, K, 3] for n Gaussians under embedding [D]; `gauss` [n, G] are
+        the per-Gaussian embeddings (needed by the affine appearance)."""
+        if self.appearance == "affine":
+            if gauss is None or gauss.shape != (sh.shape[0], GAUSS_DIM):
+                raise ValueError(
+                    f"the affine appearance needs per-Gaussian embeddings "
+                    f"[{sh.shape[0]}, {GAUSS_DIM}]"
+                )
+            return self.f_gamma(sh, means, embedding, gauss)
         return self.f_gamma(sh, means, embedding)
 
     @torch.no_grad()

@@ -47,6 +47,13 @@ class Config:
     """Network sizes: "cpu" (64² inputs, narrow) or "authors" (their exact layers)."""
     mask_concat: Literal["features", "input"] = "features"
     """Where f_α sees the mask: the paper's "features" or the code's "input"."""
+    appearance: Literal["delta-sh", "affine"] = "delta-sh"
+    """f_γ's form: the paper's "delta-sh" (ΔSH from SH, PE(μ), l) or "affine" (a
+    per-channel affine colour map from a per-Gaussian embedding, l and the base
+    colour, as WildGaussians)."""
+    color_map: bool = False
+    """A per-image 3×3 colour matrix and offset from the embedding, applied to the
+    rendered image (exposure, tint, black-and-white; bakes exactly into SH)."""
     delta_sh_scale: float = 4.0
     """ΔSH = scale·tanh(·); the authors' 1 limits the DC colour shift to ±0.28."""
     sh_degree: int = 3
@@ -72,7 +79,12 @@ class Config:
     opacity_reset_every: int = 1000
     prune_opacity: float = 0.005
     max_gaussians: int = 25000
-    """Densification stops adding past this count (cost per step grows with it)."""
+    """The hard ceiling: densification never adds past this count (memory and
+    time per step grow with it)."""
+    growth_elasticity: float = 0.0
+    """The adaptive budget: growth stops once the loss elasticity −Δln L1 / Δln N
+    of the photos (between densification rounds ≥ 25 % apart in count) falls
+    below this; 0 = grow to the ceiling."""
     sh_increase_every: int = 400
     visible_only: bool = True
     """Evaluate ΔSH only for Gaussians inside the view's frustum (+50% margin)."""
@@ -186,6 +198,7 @@ def run(
         sh_degree,
         nets,
         background=background,
+        gauss_embed=params.get("app_embed"),
     )
     if nets is not None:
         nets.eval()
@@ -234,6 +247,8 @@ def run(
     }
     if field_out.background is not None:
         root["background"] = field_out.background.numpy()
+    if field_out.gauss_embed is not None:
+        root["app_embed"] = field_out.gauss_embed.numpy()
     if nets is not None:
         for k, v in nets.state_dict().items():
             root[f"net.{k}"] = v.numpy()
