@@ -435,6 +435,7 @@ def test_growth_stops_when_loss_elasticity_is_low(loss_ratio, stops):
     state.window = [10.0 * loss_ratio, 100.0]
     _growth_check(cfg, state, 200)
     assert state.growing is not stops
+    assert state.stopped == ([200, 2000] if stops else [])
     assert [r[1] for r in state.rounds] == [1000, 2000]
     assert state.window == [0.0, 0.0]
     # off (0) never stops; a reset between the rounds is not compared
@@ -490,3 +491,25 @@ def test_colour_map_renders_as_it_bakes():
     m, _ = nets.color_matrix(emb[0])
     assert m.shape == (3, 3)
     assert nets.map_colors(torch.ones(2, 3), emb[0]).shape == (2, 3)
+
+
+@torch.no_grad()
+def test_image_stats_extend_the_embedding():
+    from ptovs.nets.wild import N_STATS, image_stats
+
+    nets = WildNets("cpu", 16, stats=True)
+    assert nets.embed_dim == 32 + N_STATS
+    rng = np.random.default_rng(0)
+    colour = rng.random((40, 50, 3)).astype(np.float32)
+    grey = np.repeat(colour.mean(2, keepdims=True), 3, 2)
+    emb_c, _ = nets.embed_image(colour)
+    emb_g, _ = nets.embed_image(grey)
+    assert emb_c.shape == (32 + N_STATS,)
+    assert float(emb_g[32 + 6]) == pytest.approx(0.0, abs=1e-6)  # no chroma
+    assert float(emb_c[32 + 6]) > 0.5
+    flat = torch.full((1, 3, 8, 8), 0.5)
+    torch.testing.assert_close(image_stats(flat), torch.zeros(1, N_STATS))
+    sh = torch.randn(5, 16, 3)
+    assert nets.delta_sh(sh, torch.randn(5, 3), emb_c).shape == (5, 16, 3)
+    sky = nets.background(torch.nn.functional.normalize(torch.randn(2, 3)), emb_c)
+    assert sky.shape == (2, 3)

@@ -242,6 +242,7 @@ class WildField:
                 if cfg.get("import_dir")
                 else cfg.get("appearance", "delta-sh"),
                 color_map="f_map.weight" in state,
+                stats=bool(cfg.get("image_stats", False)) and not cfg.get("import_dir"),
             )
             nets.load_state_dict(state)
             nets.eval()

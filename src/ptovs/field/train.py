@@ -58,6 +58,7 @@ class TrainState:
     window: list[float] = field(default_factory=lambda: [0.0, 0.0])
     rounds: list[list[float]] = field(default_factory=list)
     growing: bool = True
+    stopped: list[int] = field(default_factory=list)  # [step, Gaussians] at the stop
 
     def to_dict(self) -> dict[str, Any]:
         """Tensors and plain containers only (loadable with weights_only=True)."""
@@ -76,6 +77,7 @@ class TrainState:
             "window": list(self.window),
             "rounds": [list(r) for r in self.rounds],
             "growing": self.growing,
+            "stopped": list(self.stopped),
         }
 
 
@@ -102,6 +104,7 @@ def _new_state(
             delta_scale=cfg.delta_sh_scale,
             appearance=cfg.appearance,
             color_map=cfg.color_map,
+            stats=cfg.image_stats,
         )
     model = GaussianModel.from_points(
         points[0],
@@ -160,6 +163,7 @@ def _restore(state: TrainState, saved: dict[str, Any]) -> None:
     state.window = list(saved.get("window", [0.0, 0.0]))
     state.rounds = [list(r) for r in saved.get("rounds", [])]
     state.growing = bool(saved.get("growing", True))
+    state.stopped = [int(x) for x in saved.get("stopped", [])]
 
 
 def view_order(step: int, n: int, seed: int) -> int:
@@ -404,6 +408,7 @@ def _growth_check(cfg: Any, state: TrainState, step: int) -> None:
             e = -(np.log(loss) - np.log(l_j)) / (np.log(n) - np.log(n_j))
             if e < cfg.growth_elasticity:
                 state.growing = False
+                state.stopped = [step, n]
                 log.info(
                     "step %d: growth stops at %d Gaussians (loss elasticity %.3f "
                     "< %.3f since step %d, %d Gaussians)",

@@ -193,13 +193,20 @@ class TransientNet(nn.Module):
 class ColorNet(nn.Module):
     """f_γ: (SH, PE(μ), l) -> ΔSH via 3 FC, concat input, 3 FC, concat SH, FC, FC, tanh."""
 
-    def __init__(self, n_coeffs: int, preset: NetPreset, delta_scale: float = 1.0):
+    def __init__(
+        self,
+        n_coeffs: int,
+        preset: NetPreset,
+        delta_scale: float = 1.0,
+        embed_dim: int | None = None,
+    ):
         super().__init__()
         self.n_coeffs = n_coeffs
         self.delta_scale = float(delta_scale)
         self.octaves = preset.pe_octaves
         sh = 3 * n_coeffs
-        inp = sh + 3 + 6 * preset.pe_octaves + preset.embed_dim
+        d = preset.embed_dim if embed_dim is None else embed_dim
+        inp = sh + 3 + 6 * preset.pe_octaves + d
         w, head = preset.gamma_width, preset.gamma_head
         self.block1 = nn.ModuleList(
             [nn.Linear(inp, w), nn.Linear(w, w), nn.Linear(w, w)]
@@ -231,6 +238,24 @@ class ColorNet(nn.Module):
         x = F.relu(self.head(torch.cat((x, flat), 1)))
         delta = torch.tanh(self.out(x)) * self.delta_scale
         return delta.reshape(n, self.n_coeffs, 3)
+
+
+N_STATS = 8
+
+
+def image_stats(image: Tensor) -> Tensor:
+    """[B, 3, S, S] in [0, 1] -> [B, 8] fixed colour statistics, about unit scale:
+    mean RGB, spread RGB, chroma (0 for black-and-white) and the top third's
+    brightness (the sky). Appended to the learned embedding (`image_stats`), they
+    tell f_γ, the sky and the colour map the photo's exposure, tint and filter
+    from the first step, before f_α has learned anything."""
+    mean = image.mean((2, 3))
+    spread = image.std((2, 3))
+    chroma = (image.max(1).values - image.min(1).values).mean((1, 2))
+    top = image[:, :, : max(1, image.shape[2] // 3)].mean((1, 2, 3))
+    return torch.cat(
+        (2 * mean - 1, 4 * spread, 4 * chroma[:, None], 2 * top[:, None] - 1), 1
+    )
 
 
 class AffineColorNet(nn.Module):
@@ -305,6 +330,7 @@ class WildNets(nn.Module):
         delta_scale: float = 1.0,
         appearance: str = "delta-sh",
         color_map: bool = False,
+        stats: bool = False,
     ):
         super().__init__()
         self.preset = PRESETS[preset] if isinstance(preset, str) else preset
@@ -316,21 +342,24 @@ class WildNets(nn.Module):
         if appearance not in APPEARANCES:
             raise ValueError(f"appearance must be one of {APPEARANCES}: {appearance!r}")
         self.appearance = appearance
+        self.stats = bool(stats)
+        d = p.embed_dim + (N_STATS if stats else 0)  # what f_γ, sky and map see
         if appearance == "affine":
-            self.f_gamma = AffineColorNet(p.embed_dim, GAUSS_DIM, 2 * p.gamma_width)
+            self.f_gamma = AffineColorNet(d, GAUSS_DIM, 2 * p.gamma_width)
         else:
-            self.f_gamma = ColorNet(n_coeffs, p, delta_scale)
-        self.sky = SkyNet(p.embed_dim) if background else None
+            self.f_gamma = ColorNet(n_coeffs, p, delta_scale, d)
+        self.sky = SkyNet(d) if background else None
         nn.init.zeros_(self.f_gamma.out.weight)  # ΔSH = 0 at the start
         nn.init.zeros_(self.f_gamma.out.bias)
-        self.f_map = nn.Linear(p.embed_dim, 12) if color_map else None
+        self.f_map = nn.Linear(d, 12) if color_map else None
         if self.f_map is not None:  # the identity map at the start
             nn.init.zeros_(self.f_map.weight)
             nn.init.zeros_(self.f_map.bias)
 
     @property
     def embed_dim(self) -> int:
-        return self.preset.embed_dim
+        """Length of an image's embedding (learned part + fixed statistics)."""
+        return self.preset.embed_dim + (N_STATS if self.stats else 0)
 
     def prepare(self, image: np.ndarray) -> tuple[Tensor, Tensor]:
         """RGB [H, W, 3] in [0, 1] -> (f_α input [3, S, S], f_β input [3, s, s])."""
@@ -345,8 +374,11 @@ class WildNets(nn.Module):
         return self.f_beta(beta_in)
 
     def embed(self, alpha_in: Tensor, mask: Tensor) -> Tensor:
-        """[B, 3, S, S] and M [B, 1, s, s] -> l [B, D]."""
-        return self.f_alpha(alpha_in, mask)
+        """[B, 3, S, S] and M [B, 1, s, s] -> l [B, D] (f_α, then the statistics)."""
+        learned = self.f_alpha(alpha_in, mask)
+        if not self.stats:
+            return learned
+        return torch.cat((learned, image_stats(alpha_in)), 1)
 
     def background(self, dirs: Tensor, embedding: Tensor) -> Tensor:
         """Ray directions [H, W, 3] and l [D] -> RGB background [H, W, 3].

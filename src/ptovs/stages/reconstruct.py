@@ -51,6 +51,9 @@ class Config:
     """f_γ's form: the paper's "delta-sh" (ΔSH from SH, PE(μ), l) or "affine" (a
     per-channel affine colour map from a per-Gaussian embedding, l and the base
     colour, as WildGaussians)."""
+    image_stats: bool = False
+    """Append 8 fixed colour statistics of the photo (mean, spread, chroma, sky
+    brightness) to f_α's learned embedding."""
     color_map: bool = False
     """A per-image 3×3 colour matrix and offset from the embedding, applied to the
     rendered image (exposure, tint, black-and-white; bakes exactly into SH)."""
@@ -154,6 +157,10 @@ def _trained(
         "seconds_per_iteration": round(state.seconds / max(config.iterations, 1), 4),
         "iterations": config.iterations,
     }
+    if state.stopped:  # the adaptive budget stopped growth here
+        metrics["growth_stopped_step"], metrics["growth_stopped_gaussians"] = (
+            state.stopped
+        )
     log.info(
         "%s: %d Gaussians (%d seen by no train view removed), %.1f s",
         scene.name,
