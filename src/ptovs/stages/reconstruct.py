@@ -2,7 +2,8 @@
 
 Trains 3D Gaussians from the scene's points3D with the WE-GS appearance networks
 (f_α embeds an image and its transient mask, f_β predicts the transient mask, f_γ
-shifts each Gaussian's SH for an embedding), or imports the authors' released
+shifts each Gaussian's SH for an embedding; by default the embedding also carries 8
+fixed colour statistics of the photo), or imports the authors' released
 WE-GS model (`--set import_dir=DIR`). A folder of photos without a COLMAP model is
 first posed with pycolmap SfM (`ptovs.sfm`), cached in the work dir.
 
@@ -51,9 +52,10 @@ class Config:
     """f_γ's form: the paper's "delta-sh" (ΔSH from SH, PE(μ), l) or "affine" (a
     per-channel affine colour map from a per-Gaussian embedding, l and the base
     colour, as WildGaussians)."""
-    image_stats: bool = False
+    image_stats: bool = True
     """Append 8 fixed colour statistics of the photo (mean, spread, chroma, sky
-    brightness) to f_α's learned embedding."""
+    brightness) to f_α's learned embedding (+1.2 dB test PSNR on bench seed 0,
+    docs/benchmarks.md, issue 24); false = the paper's embedding alone."""
     color_map: bool = False
     """A per-image 3×3 colour matrix and offset from the embedding, applied to the
     rendered image (exposure, tint, black-and-white; bakes exactly into SH)."""
