@@ -54,8 +54,8 @@ class Config:
     colour, as WildGaussians)."""
     image_stats: bool = True
     """Append 8 fixed colour statistics of the photo (mean, spread, chroma, sky
-    brightness) to f_α's learned embedding (+1.2 dB test PSNR on bench seed 0,
-    docs/benchmarks.md, issue 24); false = the paper's embedding alone."""
+    brightness) to f_α's learned embedding (+0.5 to +2.1 dB test PSNR on bench
+    seeds 0-2, docs/benchmarks.md, issue 24); false = the paper's embedding alone."""
     color_map: bool = False
     """A per-image 3×3 colour matrix and offset from the embedding, applied to the
     rendered image (exposure, tint, black-and-white; bakes exactly into SH)."""
