@@ -21,6 +21,7 @@ from ptovs.cli import main
 from ptovs.field.losses import auroc, psnr
 from ptovs.field.model import GaussianModel, LearningRates
 from ptovs.field.render import WildField, gaussian_colors
+from ptovs.nets.wild import N_STATS
 from ptovs.raster import Camera, render
 from ptovs.scene import load_scene
 
@@ -83,7 +84,7 @@ def test_tiny_cli_trains_a_field(tiny_run, tiny_scene_dir):
         assert sorted(names) == sorted(v.name for v in scene.views)
         for v in scene.views:  # an embedding for every image, masks for train ones
             view = art[v.name]
-            assert view["embedding"].shape == (32,)
+            assert view["embedding"].shape == (32 + N_STATS,)  # learned + statistics
             assert ("transient" in view) == (v.split == "train")
         # training log: PSNR rises clearly above the initial render
         start = _initial_psnr(scene)
