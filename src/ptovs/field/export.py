@@ -21,7 +21,8 @@ def appearance_embedding(field: WildField, image: str | None = None) -> torch.Te
 
 
 def baked_sh(field: WildField, image: str | None = None) -> torch.Tensor:
-    """SH [N, K, 3] with ΔSH (or the affine map, written as ΔSH) and the colour map of `image`'s embedding (or the neutral one) added.
+    """SH [N, K, 3] with the appearance of `image`'s embedding (or the neutral one)
+    baked in: ΔSH (the affine map is one too), then the colour map if any.
 
     A plain field (no networks) returns its SH unchanged.
     """

@@ -15,9 +15,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ptovs.raster import Gaussians
+from ptovs.raster import SH_C0, Gaussians
 
-SH_C0 = 0.28209479177387814
 NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 APP_EMBED = "app_embed"  # optional per-Gaussian appearance embedding [N, G]
 

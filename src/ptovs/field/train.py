@@ -53,12 +53,16 @@ class TrainState:
         default_factory=lambda: {"step": [], "loss": [], "psnr": [], "n": [], "sec": []}
     )
     seconds: float = 0.0
-    # the adaptive budget: L1 summed since the last densification round, and one
-    # [step, Gaussians, mean L1] record per round; growing turns false for good
+    # the adaptive budget: L1 summed since the last densification round, one
+    # [step, Gaussians, mean L1] record per round, and [step, Gaussians] once
+    # growth has stopped (for good)
     window: list[float] = field(default_factory=lambda: [0.0, 0.0])
     rounds: list[list[float]] = field(default_factory=list)
-    growing: bool = True
-    stopped: list[int] = field(default_factory=list)  # [step, Gaussians] at the stop
+    stopped: list[int] = field(default_factory=list)
+
+    @property
+    def growing(self) -> bool:
+        return not self.stopped
 
     def to_dict(self) -> dict[str, Any]:
         """Tensors and plain containers only (loadable with weights_only=True)."""
@@ -76,7 +80,6 @@ class TrainState:
             "seconds": self.seconds,
             "window": list(self.window),
             "rounds": [list(r) for r in self.rounds],
-            "growing": self.growing,
             "stopped": list(self.stopped),
         }
 
@@ -162,7 +165,6 @@ def _restore(state: TrainState, saved: dict[str, Any]) -> None:
     state.seconds = float(saved["seconds"])
     state.window = list(saved.get("window", [0.0, 0.0]))
     state.rounds = [list(r) for r in saved.get("rounds", [])]
-    state.growing = bool(saved.get("growing", True))
     state.stopped = [int(x) for x in saved.get("stopped", [])]
 
 
@@ -261,8 +263,9 @@ def train(
         loss.backward()
 
         _accumulate_grads(state, out.means2d.grad, out.radii, cam)
-        state.window[0] += float((pred.detach() - gt).abs().mean())
-        state.window[1] += 1.0
+        if cfg.growth_elasticity > 0:  # the adaptive budget's loss record
+            state.window[0] += float((pred.detach() - gt).abs().mean())
+            state.window[1] += 1.0
         for opt in (model.opt, state.nets_opt if nets is not None else state.bg_opt):
             opt.step()
             opt.zero_grad(set_to_none=True)
@@ -396,18 +399,16 @@ def _growth_check(cfg: Any, state: TrainState, step: int) -> None:
     state.rounds.append([float(step), float(n), loss])
     if not state.growing or cfg.growth_elasticity <= 0:
         return
-    every = cfg.densify_every
+    breaks = [cfg.mask_warmup] + list(
+        range(cfg.opacity_reset_every, step + 1, cfg.opacity_reset_every)
+    )
     for s_j, n_j, l_j in reversed(state.rounds[:-1]):
-        window_start = s_j - 2 * every  # the round after a break is off too
-        breaks = [cfg.mask_warmup] + list(
-            range(cfg.opacity_reset_every, step + 1, cfg.opacity_reset_every)
-        )
+        window_start = s_j - 2 * cfg.densify_every  # the round after a break is off too
         if any(window_start < b <= step for b in breaks if b > 0):
             return  # a reset or the mask start lies between: not comparable
         if n_j * GROWTH_SPAN <= n:
             e = -(np.log(loss) - np.log(l_j)) / (np.log(n) - np.log(n_j))
             if e < cfg.growth_elasticity:
-                state.growing = False
                 state.stopped = [step, n]
                 log.info(
                     "step %d: growth stops at %d Gaussians (loss elasticity %.3f "

@@ -28,7 +28,8 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F  # noqa: N812
 
-SH_C0 = 0.28209479177387814
+from ptovs.raster import SH_C0
+
 APPEARANCES = ("delta-sh", "affine")
 GAUSS_DIM = 16  # per-Gaussian embedding of the affine appearance
 
@@ -272,7 +273,6 @@ class AffineColorNet(nn.Module):
 
     def __init__(self, embed_dim: int, gauss_dim: int, width: int):
         super().__init__()
-        self.gauss_dim = gauss_dim
         self.fc1 = nn.Linear(gauss_dim + embed_dim + 3, width)
         self.fc2 = nn.Linear(width, width)
         self.out = nn.Linear(width, 6)

@@ -29,9 +29,10 @@ from ptovs.raster._backends import available_backends
 from ptovs.raster._blend import BlendWeights, blend_weights, csr_matmul
 from ptovs.raster._common import Camera, Gaussians
 from ptovs.raster._render import RenderOutput, render
-from ptovs.raster._sh import eval_sh
+from ptovs.raster._sh import SH_C0, eval_sh
 
 __all__ = [
+    "SH_C0",
     "VERSION",
     "BlendWeights",
     "Camera",

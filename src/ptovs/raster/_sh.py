@@ -7,7 +7,7 @@ from torch import Tensor
 
 # --- spherical harmonics ----------------------------------------------------
 
-_SH_C0 = 0.28209479177387814
+SH_C0 = 0.28209479177387814
 _SH_C1 = 0.4886025119029199
 _SH_C2 = (
     1.0925484305920792,
@@ -30,7 +30,7 @@ _SH_C3 = (
 def _sh_basis(degree: int, d: Tensor) -> Tensor:
     """Real SH basis (3DGS order and signs) at unit directions d [N, 3] -> [N, K]."""
     x, y, z = d.unbind(-1)
-    out = [torch.full_like(x, _SH_C0)]
+    out = [torch.full_like(x, SH_C0)]
     if degree >= 1:
         out += [-_SH_C1 * y, _SH_C1 * z, -_SH_C1 * x]
     if degree >= 2:
