@@ -14,6 +14,7 @@ from ptovs.field.model import GaussianModel, LearningRates, knn_mean_dist2
 from ptovs.field.ply import read_ply, write_ply
 from ptovs.field.render import WildField, gaussian_colors, in_frustum
 from ptovs.nets import PRESETS, WildNets, positional_encoding
+from ptovs.nets.wild import linear_of_concat
 from ptovs.raster import Camera, Gaussians, render
 
 
@@ -88,6 +89,32 @@ def test_positional_encoding_layout():
     assert torch.allclose(pe[0, :3], x[0])
     assert torch.allclose(pe[0, 3:6], torch.sin(x[0]))
     assert torch.allclose(pe[0, 24:27], torch.cos(8 * x[0]))
+
+
+def test_linear_of_concat_is_the_layer_on_the_concatenation():
+    """f_γ and the sky fold the shared embedding into the bias (float64 reference:
+    the layer on the explicit concatenation), and gradients reach the same weights."""
+    torch.manual_seed(0)
+    layer = torch.nn.Linear(5 + 7 + 4, 6).double()
+    a, b = (
+        torch.randn(9, 5, dtype=torch.float64),
+        torch.randn(9, 7, dtype=torch.float64),
+    )
+    e = torch.randn(4, dtype=torch.float64, requires_grad=True)
+    ref = layer(torch.cat((a, b, e.expand(9, -1)), 1))
+    out = linear_of_concat(layer, (a, b), e)
+    assert torch.allclose(out, ref, atol=1e-12)
+    g_ref = torch.autograd.grad(ref.square().sum(), (layer.weight, e))
+    g_out = torch.autograd.grad(out.square().sum(), (layer.weight, e))
+    for x, y in zip(g_out, g_ref, strict=True):
+        assert torch.allclose(x, y, atol=1e-10)
+    assert torch.allclose(
+        linear_of_concat(layer, (torch.cat((a, b, e.detach().expand(9, -1)), 1),)), ref
+    )
+    with pytest.raises(ValueError, match="do not fit"):
+        linear_of_concat(layer, (a,), e)
+    empty = linear_of_concat(layer, (a[:0], b[:0]), e)  # no Gaussian in view
+    assert empty.shape == (0, 6)
 
 
 def test_presets_cpu_is_cheaper():

@@ -86,6 +86,7 @@ class GaussianModel:
             [{"params": [self.params[k]], "lr": lrs[k], "name": k} for k in names],
             lr=0.0,
             eps=1e-15,
+            fused=True,  # one kernel per group: the loop version costs ~5 ms a step
         )
 
     # ------------------------------------------------------------ construction
