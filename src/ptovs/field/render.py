@@ -88,8 +88,12 @@ def gaussian_colors(
         if visible_only:
             idx = torch.nonzero(in_frustum(means.detach(), cam)).squeeze(1)
             if idx.numel():
-                g_idx = None if gauss is None else gauss[idx]
-                delta = nets.delta_sh(sh[idx], means.detach()[idx], embedding, g_idx)
+                # index_select: its backward is an index_add, where indexing's
+                # is a slower accumulating index_put
+                g_idx = None if gauss is None else gauss.index_select(0, idx)
+                delta = nets.delta_sh(
+                    sh.index_select(0, idx), means.detach()[idx], embedding, g_idx
+                )
                 sh = sh.index_add(0, idx, delta)
         else:
             sh = sh + nets.delta_sh(sh, means.detach(), embedding, gauss)
