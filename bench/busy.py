@@ -17,7 +17,8 @@ Settings:
   gomp      the OpenMP runtime's default (libgomp: spin 300k rounds, ~3 ms, then
             sleep; GOMP_SPINCOUNT=300000 says so explicitly): `ptovs` before
             issue 23
-  passive   OMP_WAIT_POLICY=PASSIVE: threads sleep at once (today's default)
+  passive   OMP_WAIT_POLICY=PASSIVE: threads sleep at once (issue 23's default)
+  spin3k    GOMP_SPINCOUNT=3000: spin ~30 µs, then sleep (issue 24's default)
   1thread   --threads 1 (PTOVS_THREADS=1)
 
 Results go to <work>/bench_busy.json and print as markdown rows.
@@ -44,6 +45,7 @@ SETTINGS = {
     "spin": {"OMP_WAIT_POLICY": "ACTIVE"},
     "gomp": {"GOMP_SPINCOUNT": "300000"},
     "passive": {"OMP_WAIT_POLICY": "PASSIVE"},
+    "spin3k": {"GOMP_SPINCOUNT": "3000"},
     "1thread": {"PTOVS_THREADS": "1"},
 }
 

@@ -88,11 +88,12 @@ def test_default_toml_matches_every_stage_default():
 
 
 def test_openmp_threads_sleep_and_threads_option():
-    """Idle OpenMP threads sleep unless the user chose a policy (issue 23: spinning
-    threads slowed reconstruct on a shared machine); --threads sets torch's count."""
+    """Idle OpenMP threads spin briefly, then sleep, unless the user chose a policy
+    (issue 23: long spins slowed reconstruct on a shared machine; issue 24: sleeping
+    at once slowed it alone); --threads sets torch's count."""
     code = (
         "import os, sys; import ptovs.cli as c, torch; "
-        "print(os.environ.get('OMP_WAIT_POLICY'));"
+        "print(os.environ.get('GOMP_SPINCOUNT'), os.environ.get('OMP_WAIT_POLICY'));"
         "c.main(['--threads', '1', 'status', '--help'], standalone_mode=False);"
         "print('threads', torch.get_num_threads())"
     )
@@ -106,5 +107,7 @@ def test_openmp_threads_sleep_and_threads_option():
         ).stdout.splitlines()
 
     out = lines(env)
-    assert out[0] == "PASSIVE" and out[-1] == "threads 1"
-    assert lines(env | {"OMP_WAIT_POLICY": "ACTIVE"})[0] == "ACTIVE"  # the user's wins
+    assert out[0] == "3000 None" and out[-1] == "threads 1"
+    # the user's own setting wins, either variable
+    assert lines(env | {"OMP_WAIT_POLICY": "ACTIVE"})[0] == "None ACTIVE"
+    assert lines(env | {"GOMP_SPINCOUNT": "10"})[0] == "10 None"

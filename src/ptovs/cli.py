@@ -29,12 +29,15 @@ log = logging.getLogger("ptovs")
 
 
 def _openmp_defaults() -> None:
-    """OpenMP threads sleep at once when a parallel region ends, instead of spinning
-    (libgomp's default spins ~3 ms): on a machine shared with other work, spinning
-    threads took the cores the working ones needed (issue 23; bench/busy.py).
+    """OpenMP threads spin ~30 µs when a parallel region ends, then sleep
+    (GOMP_SPINCOUNT=3000; libgomp's default spins ~3 ms). Spinning that long took
+    the cores a shared machine's other work needed (issue 23); sleeping at once
+    (OMP_WAIT_POLICY=PASSIVE, issue 23's choice) made every one of a training
+    step's ~thousand small parallel regions wait for a wake-up: 216-228 ms a bench
+    step alone against 158 ms here (issue 24; docs/benchmarks.md, busy machines).
     Runs before torch loads its OpenMP runtime; a user's own setting wins."""
     if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
-        os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+        os.environ["GOMP_SPINCOUNT"] = "3000"
 
 
 _openmp_defaults()
@@ -138,8 +141,9 @@ def _setup_logging(verbose: int, quiet: int) -> None:
     default=None,
     help="CPU threads for torch and the rasterizer (default: torch's, one per core; "
     "$PTOVS_THREADS). Results are reproducible bit for bit per thread count. Idle "
-    "threads sleep (OMP_WAIT_POLICY=PASSIVE unless set), so the default degrades "
-    "gracefully beside other work (docs/benchmarks.md, busy machines).",
+    "threads spin briefly, then sleep (GOMP_SPINCOUNT=3000 unless it or "
+    "OMP_WAIT_POLICY is set), so the default degrades gracefully beside other "
+    "work (docs/benchmarks.md, busy machines).",
 )
 @click.option("-v", "--verbose", count=True, help="More log output (-vv for debug).")
 @click.option("-q", "--quiet", count=True, help="Less log output.")
