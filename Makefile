@@ -68,6 +68,7 @@ bench: setup
 	$(BIN)/python bench/apps.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
 	$(BIN)/python bench/busy.py --work $(WORK)/busy
 	$(BIN)/python bench/busy.py --work $(WORK)/busy --competitors 2
+	$(BIN)/python bench/omp_steps.py --data $(DATA) --work $(WORK)/omp_steps
 	$(BIN)/python bench/real.py --work $(WORK)/real
 	$(BIN)/python bench/real.py --work $(WORK)/real --sets fountain_p11 --megapixels 12
 
