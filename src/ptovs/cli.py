@@ -32,8 +32,8 @@ def _openmp_defaults() -> None:
     """OpenMP threads spin ~30 µs when a parallel region ends, then sleep
     (GOMP_SPINCOUNT=3000; libgomp's default spins ~3 ms). Spinning that long took
     the cores a shared machine's other work needed (issue 23); sleeping at once
-    (OMP_WAIT_POLICY=PASSIVE, issue 23's choice) made every one of a training
-    step's ~thousand small parallel regions wait for a wake-up: 216-228 ms a bench
+    (OMP_WAIT_POLICY=PASSIVE, issue 23's choice) made each of a training step's
+    thousands of small tensor operations wait for a wake-up: 216-228 ms a bench
     step alone against 158 ms here (issue 24; docs/benchmarks.md, busy machines).
     Runs before torch loads its OpenMP runtime; a user's own setting wins."""
     if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
