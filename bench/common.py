@@ -116,7 +116,8 @@ def instrument_chain(scene: Path, work: Path, config: Path, variant: str = "male
 
 def pose_error(est: dict, truth: dict) -> dict:
     """Pose error of estimated cameras against the true ones after a Sim3 alignment
-    of the camera centres. Both map a photo name to (R camera-to-world [3, 3],
+    of the camera centres, and (rot_aligned_*) after the world rotation that best
+    aligns the camera rotations alone. Both map a photo name to (R camera-to-world [3, 3],
     centre [3]); names in both count. Rotations in degrees, centres in the truth's
     units."""
     import numpy as np
@@ -132,7 +133,19 @@ def pose_error(est: dict, truth: dict) -> dict:
         d = (rs @ est[n][0]).T @ truth[n][0]
         rot.append(np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1))))
     centre = np.linalg.norm(np.array([sim * p for p in e]) - g, axis=1)
+    # rotations alone: the world rotation that best maps the estimated camera
+    # rotations onto the true ones (orthogonal Procrustes), free of the centres
+    m = sum(est[n][0] @ truth[n][0].T for n in names)
+    u, _, vt = np.linalg.svd(m)
+    a = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    rot_only = []
+    for n in names:
+        d = (a.T @ est[n][0]).T @ truth[n][0]
+        rot_only.append(np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1))))
     return dict(
+        rot_aligned_median_deg=float(np.median(rot_only)),
+        rot_aligned_p90_deg=float(np.percentile(rot_only, 90)),
+        rot_aligned_over5=int(np.sum(np.array(rot_only) > 5.0)),
         posed=len(names),
         rot_median_deg=float(np.median(rot)),
         rot_p90_deg=float(np.percentile(rot, 90)),

@@ -109,7 +109,8 @@ def main() -> None:
     res = Results(args.work / "bench_sfm.json")
     print_header(
         "seed", "variant", "registered", "models (largest)", "features",
-        "verified pairs", "s", "rotation median / p90 (°)",
+        "verified pairs", "s", "rotation median / p90 (°), Sim3 of centres",
+        "rotation median / p90 (°) / photos over 5°, rotations aligned",
     )  # fmt: skip
     for seed in args.seeds:
         scene = bench_scene(args.data, seed)
@@ -126,7 +127,7 @@ def main() -> None:
                 f"| {seed} | {variant} | {r['registered']}/{r['photos']} | "
                 f"{r['n_models']} ({', '.join(map(str, r['models']))}) | "
                 f"{r['features']} | {r['verified_pairs']} | {r['seconds']} | "
-                f"{r['rot_median_deg']:.2f} / {r['rot_p90_deg']:.2f} |",
+                f"{r['rot_median_deg']:.2f} / {r['rot_p90_deg']:.2f} | {r['rot_aligned_median_deg']:.2f} / {r['rot_aligned_p90_deg']:.2f} / {r['rot_aligned_over5']} |",
                 flush=True,
             )
 

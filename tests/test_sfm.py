@@ -270,3 +270,79 @@ def test_exif_rotated_photo_is_staged_upright(tmp_path, caplog):
     np.testing.assert_array_equal(staged, cv2.rotate(decoded, cv2.ROTATE_90_CLOCKWISE))
     assert "phone.jpg turned upright (EXIF orientation)" in caplog.text
     assert (tmp_path / "out" / "plain.jpg").read_bytes() == buf.tobytes()
+
+
+def _repeat_mask_reference(xy, scale, desc, threshold):
+    """Float64 brute force of ptovs.sfm._repeat_mask."""
+    d = desc.astype(np.float64)
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    keep = np.ones(len(xy), bool)
+    for i in range(len(xy)):
+        for j in range(len(xy)):
+            near = max(3.0, 2.0 * max(scale[i], scale[j]))
+            if np.linalg.norm(xy[i] - xy[j]) >= near:
+                if np.linalg.norm(d[i] - d[j]) < threshold:
+                    keep[i] = False
+    return keep
+
+
+def test_repeated_features_are_dropped_and_one_place_kept():
+    from ptovs.sfm import _repeat_mask
+
+    rng = np.random.default_rng(0)
+    n = 60
+    desc = rng.integers(0, 255, (n, 128)).astype(np.uint8)
+    xy = rng.uniform(0, 500, (n, 2))
+    scale = rng.uniform(1, 4, n)
+    # a checker corner seen three times at other places: all three are repeats
+    desc[1] = desc[2] = desc[0]
+    xy[1], xy[2] = xy[0] + [40, 0], xy[0] + [0, 40]
+    # one place with two orientations' near-identical descriptors (COLMAP's pairs)
+    desc[4] = desc[3]
+    desc[4, :8] = np.minimum(desc[4, :8].astype(int) + 3, 255)
+    xy[4] = xy[3] + [0.5, 0]
+    # a huge-valued descriptor and an all-zero one are unit-normalised or kept
+    desc[5] = 255
+    desc[6] = 0
+    keep = _repeat_mask(xy, scale, desc, 0.35)
+    assert not keep[:3].any()
+    assert keep[3] and keep[4] and keep[6]
+    np.testing.assert_array_equal(keep, _repeat_mask_reference(xy, scale, desc, 0.35))
+    # chunking does not change the answer (many features: several blocks)
+    big = rng.integers(0, 255, (3000, 128)).astype(np.uint8)
+    big[100:110] = big[99]
+    bxy = rng.uniform(0, 3000, (3000, 2))
+    bkeep = _repeat_mask(bxy, np.ones(3000), big, 0.35)
+    assert not bkeep[99:110].any() and bkeep.sum() >= 3000 - 11
+    # off, empty, single
+    assert _repeat_mask(xy, scale, desc, 0.0).all()
+    assert _repeat_mask(
+        np.zeros((0, 2)), np.zeros(0), np.zeros((0, 128)), 0.35
+    ).shape == (0,)
+    assert _repeat_mask(xy[:1], scale[:1], desc[:1], 0.35).all()
+
+
+def test_pixel_thresholds_follow_the_photo_size(tmp_path):
+    from ptovs.sfm import _pixel_scale
+
+    def db_with(sizes):
+        path = tmp_path / f"{len(sizes)}_{sizes[0][0]}.db"
+        db = pycolmap.Database.open(str(path))
+        for w, h in sizes:
+            db.write_camera(
+                pycolmap.Camera(
+                    model="SIMPLE_RADIAL",
+                    width=w,
+                    height=h,
+                    params=[w, w / 2, h / 2, 0],
+                )
+            )
+        db.close()
+        return path
+
+    cfg = SfmConfig()
+    assert _pixel_scale(db_with([(250, 141)] * 5), cfg) == 0.25  # bench photos
+    assert _pixel_scale(db_with([(640, 480)] * 3), cfg) == pytest.approx(0.625)
+    assert _pixel_scale(db_with([(4243, 2828)] * 3), cfg) == 1.0  # 12 MP: COLMAP's
+    assert _pixel_scale(db_with([(100, 80)]), cfg) == 0.25  # clamped
+    assert _pixel_scale(db_with([(640, 480)]), SfmConfig(pixel_scale=2.0)) == 2.0

@@ -55,7 +55,7 @@ from ptovs.scene import jpeg_truncated
 log = logging.getLogger(__name__)
 
 NAME = "sfm"
-VERSION = 2  # 2: EXIF-rotated JPEGs are staged upright
+VERSION = 3  # 2: EXIF-rotated JPEGs are staged upright; 3: repeated features dropped
 IMAGE_EXTS = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp", ".jp2"}
 MIN_REGISTERED = 3
 PAIR_SECONDS = 0.2  # exhaustive matching of two 4096-feature photos on 2 cores
@@ -72,8 +72,9 @@ class SfmConfig:
     3072×2048 fountain photos of shared/data/real)."""
     peak_threshold: float = 0.0067
     """SIFT detection threshold (COLMAP's default); lower finds more on flat images."""
-    min_num_matches: int = 15
-    """Minimum verified inliers for a pair, and matches for the mapper."""
+    min_num_matches: int = 10
+    """Minimum verified inliers for a pair, and matches for the mapper (COLMAP: 15;
+    10 registers more of the small bench photos once repeated texture is dropped)."""
     pairing: Literal["auto", "exhaustive", "retrieval", "vocabtree", "sequential"] = (
         "auto"
     )
@@ -90,6 +91,20 @@ class SfmConfig:
     camera_mode: Literal["per_image", "single", "auto"] = "per_image"
     test_fraction: float = 0.1
     """Share of registered photos held out as the test split."""
+    repeat_threshold: float = 0.35
+    """Drop a photo's SIFT features whose descriptor lies within this distance (unit
+    descriptors, 0..2) of another feature of the same photo at another place:
+    repeated texture (tiles, checkers, stripes) that matching cannot tell apart and
+    that verifies wrong pairs. 0 keeps every feature."""
+    min_pose_inliers: int = 12
+    """Inlier 2D-3D matches needed to register a photo (COLMAP's
+    abs_pose_min_num_inliers, 30 there; a 250-px photo keeps ~260 features)."""
+    pixel_scale: float = 0.0
+    """COLMAP's pixel thresholds (4 px for two-view geometry, triangulation and
+    filtering; 12 px for registering a photo) are tuned for ~1,000-px photos and
+    are multiplied by this. 0: automatic, the median long side the features are
+    found at (photo size, at most max_image_size) / 1024, clamped to 0.25..1, so
+    photos of 1,024 px or more keep COLMAP's thresholds."""
     structure_less: bool = False
     """COLMAP's structure-less registration fallback (slow on hard photos)."""
     seed: int = 0
@@ -262,8 +277,95 @@ def _extract_features(
     )
 
 
+def _repeat_mask(
+    xy: np.ndarray, scale: np.ndarray, desc: np.ndarray, threshold: float
+) -> np.ndarray:
+    """True for features to keep: no feature at another place within `threshold`.
+
+    xy [n, 2] pixel positions, scale [n] feature sizes (px), desc [n, d] descriptors
+    (any non-negative type; compared as unit vectors). Two features are at the same
+    place (the two orientations COLMAP gives one location, or one blob found at
+    neighbouring scales) when closer than max(3 px, twice the larger size).
+    """
+    n = len(xy)
+    keep = np.ones(n, bool)
+    if n < 2 or threshold <= 0:
+        return keep
+    d = desc.astype(np.float32)
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    xy = xy.astype(np.float32)
+    scale = scale.astype(np.float32)
+    chunk = max(1, 2_000_000 // n)  # [chunk, n] float32 blocks of ~8 MB
+    for lo in range(0, n, chunk):
+        hi = min(n, lo + chunk)
+        close = (d[lo:hi] @ d.T) > 1.0 - 0.5 * threshold * threshold  # |a-b| < t
+        rows, cols = np.nonzero(close)
+        sep = np.linalg.norm(xy[lo + rows] - xy[cols], axis=1)
+        near = np.maximum(3.0, 2.0 * np.maximum(scale[lo + rows], scale[cols]))
+        elsewhere = rows[sep >= near]
+        keep[lo + elsewhere] = False
+    return keep
+
+
+def _drop_repeated_features(db: Path, threshold: float) -> tuple[int, int]:
+    """Remove repeated-texture features from every photo of database `db` (see
+    SfmConfig.repeat_threshold); returns (features before, after)."""
+    import pycolmap
+
+    handle = pycolmap.Database.open(str(db))
+    try:
+        kept = {}
+        before = after = 0
+        for im in handle.read_all_images():
+            kp = np.asarray(handle.read_keypoints(im.image_id))
+            desc = handle.read_descriptors(im.image_id)
+            data = np.asarray(desc.data)
+            # COLMAP keypoints: x, y, a11, a12, a21, a22 (the affine shape)
+            scale = np.sqrt(np.abs(kp[:, 2] * kp[:, 5] - kp[:, 3] * kp[:, 4]))
+            keep = _repeat_mask(kp[:, :2], scale, data, threshold)
+            before += len(kp)
+            after += int(keep.sum())
+            kept[im.image_id] = (
+                np.ascontiguousarray(kp[keep]),
+                pycolmap.FeatureDescriptors(
+                    desc.type, np.ascontiguousarray(data[keep])
+                ),
+            )
+        handle.clear_keypoints()
+        handle.clear_descriptors()
+        for image_id, (kp, desc) in kept.items():
+            handle.write_keypoints(image_id, kp)
+            handle.write_descriptors(image_id, desc)
+    finally:
+        handle.close()
+    return before, after
+
+
+def _pixel_scale(db: Path, config: SfmConfig) -> float:
+    """The factor on COLMAP's pixel thresholds (SfmConfig.pixel_scale), from the
+    photo sizes the database's cameras record."""
+    import pycolmap
+
+    if config.pixel_scale > 0:
+        return float(config.pixel_scale)
+    handle = pycolmap.Database.open(str(db))
+    try:
+        sides = [max(c.width, c.height) for c in handle.read_all_cameras()]
+    finally:
+        handle.close()
+    if not sides:
+        return 1.0
+    side = min(float(np.median(sides)), float(config.max_image_size))
+    return float(np.clip(side / 1024.0, 0.25, 1.0))
+
+
 def _match_features(
-    db: Path, workdir: Path, names: list[str], config: SfmConfig, n_threads: int
+    db: Path,
+    workdir: Path,
+    names: list[str],
+    config: SfmConfig,
+    n_threads: int,
+    scale: float = 1.0,
 ) -> str:
     """Match and verify the photo pairs the pairing chooses; returns the pairing used
     ("auto" becomes exhaustive when its estimated time fits the budget)."""
@@ -271,6 +373,7 @@ def _match_features(
 
     verify = pycolmap.TwoViewGeometryOptions()
     verify.min_num_inliers = config.min_num_matches
+    verify.ransac.max_error = 4.0 * scale
     match = pycolmap.FeatureMatchingOptions()
     match.num_threads = n_threads
     pairing = config.pairing
@@ -363,9 +466,18 @@ def run_sfm(photo_folder: Path, workdir: Path, config: SfmConfig) -> dict[str, A
     db = workdir / "database.db"
     n_threads = min(os.cpu_count() or 1, 8)
     _extract_features(db, staged, names, config, n_threads)
+    if config.repeat_threshold > 0:
+        before, after = _drop_repeated_features(db, config.repeat_threshold)
+        log.info(
+            "repeated texture: %d of %d SIFT features dropped (repeat_threshold %.2f)",
+            before - after,
+            before,
+            config.repeat_threshold,
+        )
     t_extract = time.perf_counter() - t0
     t1 = time.perf_counter()
-    pairing = _match_features(db, workdir, names, config, n_threads)
+    scale = _pixel_scale(db, config)
+    pairing = _match_features(db, workdir, names, config, n_threads, scale)
     t_match = time.perf_counter() - t1
 
     t2 = time.perf_counter()
@@ -373,6 +485,12 @@ def run_sfm(photo_folder: Path, workdir: Path, config: SfmConfig) -> dict[str, A
     opts.num_threads = n_threads
     opts.min_num_matches = config.min_num_matches
     opts.structure_less_registration_fallback = config.structure_less
+    opts.mapper.abs_pose_min_num_inliers = config.min_pose_inliers
+    opts.mapper.abs_pose_max_error = 12.0 * scale
+    opts.mapper.init_max_error = 4.0 * scale
+    opts.mapper.filter_max_reproj_error = 4.0 * scale
+    opts.triangulation.merge_max_reproj_error = 4.0 * scale
+    opts.triangulation.complete_max_reproj_error = 4.0 * scale
     opts.random_seed = config.seed
     sparse = workdir / "sparse_raw"
     shutil.rmtree(sparse, ignore_errors=True)
@@ -392,6 +510,7 @@ def run_sfm(photo_folder: Path, workdir: Path, config: SfmConfig) -> dict[str, A
         "unregistered": unregistered,
         "skipped": skipped,
         "pairing": pairing,
+        "pixel_scale": round(scale, 3),
         "rejected_cameras": rejected,
         "models": len(recs),
         "seconds": {
