@@ -489,6 +489,47 @@ def test_growth_check_skips_rounds_across_an_opacity_reset():
     assert state.growing
 
 
+def test_gaussian_budget_follows_the_photos_under_the_ceiling():
+    from ptovs.field.train import gaussian_budget
+    from ptovs.stages.reconstruct import Config
+
+    photos = [np.zeros((500, 1000, 3), np.float32)] * 4  # 2 Mpx
+    assert gaussian_budget(Config(gaussians_per_mpx=3000.0), photos) == 6000
+    # the ceiling wins; 0 per Mpx is the ceiling alone; never 0 Gaussians
+    assert (
+        gaussian_budget(Config(gaussians_per_mpx=3e4, max_gaussians=9000), photos)
+        == 9000
+    )
+    assert (
+        gaussian_budget(Config(gaussians_per_mpx=0.0, max_gaussians=777), photos) == 777
+    )
+    assert gaussian_budget(Config(gaussians_per_mpx=1e-9), photos) == 1
+    assert gaussian_budget(Config(gaussians_per_mpx=3000.0), []) == 1
+
+
+def test_densification_never_grows_past_the_budget():
+    """Every Gaussian over the threshold, budget 1,300 from 1,000: growth stops at
+    the budget, and the same seed gives the same set."""
+    from ptovs.field.train import _densify_schedule
+    from ptovs.stages.reconstruct import Config
+
+    cfg = Config(densify_from=0, densify_every=1, opacity_reset_every=10_000)
+
+    def grow():
+        state = _growth_state()
+        state.budget = 1300
+        for step in (1, 2, 3):
+            n = len(state.model)
+            state.grad_accum, state.grad_denom = torch.ones(n), torch.ones(n)
+            _densify_schedule(cfg, state, step)
+            assert len(state.model) <= 1300
+        return state.model.params["means"].detach().clone()
+
+    first, second = grow(), grow()
+    assert 1000 < len(first) <= 1300
+    torch.testing.assert_close(first, second, rtol=0, atol=0)
+
+
 def test_colour_map_renders_as_it_bakes():
     """The per-image colour map applied to the image equals the field rendered
     from SH with the map baked in (export-ply, roam), sky included."""

@@ -57,6 +57,9 @@ class TrainState:
     # [step, Gaussians, mean L1] record per round, and [step, Gaussians] once
     # growth has stopped (for good)
     window: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    # the Gaussian count densification may grow to (gaussian_budget; not saved:
+    # recomputed from the config and photos on resume)
+    budget: int = 0
     rounds: list[list[float]] = field(default_factory=list)
     stopped: list[int] = field(default_factory=list)
 
@@ -169,6 +172,17 @@ def _restore(state: TrainState, saved: dict[str, Any]) -> None:
     state.stopped = [int(x) for x in saved.get("stopped", [])]
 
 
+def gaussian_budget(cfg: Any, images: list[np.ndarray]) -> int:
+    """How many Gaussians densification may grow to: `gaussians_per_mpx` per
+    million train pixels, never above `max_gaussians` (the hard ceiling); 0 per
+    Mpx means the ceiling alone. Deterministic: photo sizes only."""
+    per_mpx = float(getattr(cfg, "gaussians_per_mpx", 0.0) or 0.0)
+    if per_mpx <= 0:
+        return int(cfg.max_gaussians)
+    mpx = sum(int(im.shape[0]) * int(im.shape[1]) for im in images) / 1e6
+    return int(min(cfg.max_gaussians, max(1, round(per_mpx * mpx))))
+
+
 def view_order(step: int, n: int, seed: int) -> int:
     """The view of a step: a seeded permutation per epoch (resume-independent)."""
     epoch, pos = divmod(step, n)
@@ -209,6 +223,15 @@ def train(
     if saved is not None:
         _restore(state, saved)
         log.info("resumed at iteration %d of %d", state.step, cfg.iterations)
+    state.budget = gaussian_budget(cfg, images)
+    if state.budget < cfg.max_gaussians:
+        log.info(
+            "Gaussian budget %d (%g per Mpx x %.2f Mpx of train photos; ceiling %d)",
+            state.budget,
+            cfg.gaussians_per_mpx,
+            sum(im.shape[0] * im.shape[1] for im in images) / 1e6,
+            cfg.max_gaussians,
+        )
     model, nets = state.model, state.nets
     tensors = [torch.from_numpy(np.ascontiguousarray(im)) for im in images]
     prepared = [nets.prepare(im) for im in images] if nets is not None else []
@@ -353,7 +376,7 @@ def _densify_schedule(cfg: Any, state: TrainState, step: int) -> None:
             cfg.densify_grad,
             cfg.percent_dense,
             gen,
-            cfg.max_gaussians if state.growing else n0,
+            state.budget if state.growing else n0,
         )
         with torch.no_grad():
             opac = torch.sigmoid(model.params["opacity_logits"])

@@ -85,7 +85,12 @@ class Config:
     prune_opacity: float = 0.005
     max_gaussians: int = 25000
     """The hard ceiling: densification never adds past this count (memory and
-    time per step grow with it)."""
+    time per step grow with it), whatever the budget below says."""
+    gaussians_per_mpx: float = 0.0
+    """The budget that follows the scene: densification grows to at most this many
+    Gaussians per million train-photo pixels (at working size), capped by
+    max_gaussians; below the initial cloud there is no growth. 0: max_gaussians
+    alone."""
     growth_elasticity: float = 0.0
     """The adaptive budget: growth stops once the loss elasticity −Δln L1 / Δln N
     of the photos (between densification rounds ≥ 25 % apart in count) falls
@@ -155,6 +160,7 @@ def _trained(
         "gaussians_trained": n_before,
         "gaussians_unseen_removed": int(unseen.sum()),
         "gaussians": len(model),
+        "gaussian_budget": state.budget,
         "train_seconds": round(state.seconds, 2),
         "seconds_per_iteration": round(state.seconds / max(config.iterations, 1), 4),
         "iterations": config.iterations,
