@@ -111,7 +111,7 @@ def run_set(args: argparse.Namespace, name: str) -> dict:
     work = args.work / "runs"
     sets = (
         [f"--set=reconstruct.iterations={args.iterations}"] if args.iterations else []
-    )
+    ) + [f"--set={kv}" for kv in args.set]
     wall, rss, stdout = run_ptovs(work, *sets, "reconstruct", "--data", str(folder))
     art = Path(stdout.strip().splitlines()[-1].split(": ", 1)[1])
     posed = next((work / tag / "sfm").glob("*/sparse")).parent
@@ -198,6 +198,10 @@ def main() -> None:
     p.add_argument("--iterations", type=int, default=0, help="0: the default")
     p.add_argument("--work", type=Path, default=ROOT / "work" / "real")
     p.add_argument(
+        "--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+        help="a config override for ptovs reconstruct (repeatable)",
+    )  # fmt: skip
+    p.add_argument(
         "--sfm-only", nargs="+", default=None, metavar="VARIANT",
         help="SfM alone under these SfmConfig variants (no reconstruct)",
     )  # fmt: skip
@@ -227,7 +231,9 @@ def main() -> None:
     )  # fmt: skip
     for name in args.sets:
         r = run_set(args, name)
-        key = f"{name}/{args.megapixels:g}mp/{args.iterations or 'default'}"
+        key = f"{name}/{args.megapixels:g}mp/{args.iterations or 'default'}" + "".join(
+            f"/{kv}" for kv in args.set
+        )
         res[key] = r
         res.save()
         print(
