@@ -86,11 +86,13 @@ class Config:
     max_gaussians: int = 25000
     """The hard ceiling: densification never adds past this count (memory and
     time per step grow with it), whatever the budget below says."""
-    gaussians_per_mpx: float = 0.0
+    gaussians_per_mpx: float = 2700.0
     """The budget that follows the scene: densification grows to at most this many
     Gaussians per million train-photo pixels (at working size), capped by
     max_gaussians; below the initial cloud there is no growth. 0: max_gaussians
-    alone."""
+    alone. 2,700 is the knee measured on bench (17k Gaussians on its 6.3 Mpx: the
+    accuracy of 25k in 3-12 % less time; `tiny`, 0.09 Mpx, keeps its 715 initial
+    points and its test PSNR; docs/benchmarks.md, issue 24 fourth stop)."""
     growth_elasticity: float = 0.0
     """The adaptive budget: growth stops once the loss elasticity −Δln L1 / Δln N
     of the photos (between densification rounds ≥ 25 % apart in count) falls
