@@ -86,13 +86,14 @@ class Config:
     max_gaussians: int = 25000
     """The hard ceiling: densification never adds past this count (memory and
     time per step grow with it), whatever the budget below says."""
-    gaussians_per_mpx: float = 2700.0
+    gaussians_per_mpx: float = 0.0
     """The budget that follows the scene: densification grows to at most this many
     Gaussians per million train-photo pixels (at working size), capped by
-    max_gaussians; below the initial cloud there is no growth. 0: max_gaussians
-    alone. 2,700 is the knee measured on bench (17k Gaussians on its 6.3 Mpx: the
-    accuracy of 25k in 3-12 % less time; `tiny`, 0.09 Mpx, keeps its 715 initial
-    points and its test PSNR; docs/benchmarks.md, issue 24 fourth stop)."""
+    max_gaussians; below the initial cloud there is no growth. 0 (default):
+    max_gaussians alone. Measured (docs/benchmarks.md, issue 24 fourth stop): 2,700
+    is the knee of bench's reconstruct (17k Gaussians, the PSNR of 25k, 3-12 % less
+    time), but on bench seed 0 the whole chain's mIoU fell 0.448/0.399 -> 0.355/0.362
+    and herzjesu_p8 lost 0.5 dB held-out, so it is not the default."""
     growth_elasticity: float = 0.0
     """The adaptive budget: growth stops once the loss elasticity −Δln L1 / Δln N
     of the photos (between densification rounds ≥ 25 % apart in count) falls
