@@ -57,8 +57,8 @@ class TrainState:
     # [step, Gaussians, mean L1] record per round, and [step, Gaussians] once
     # growth has stopped (for good)
     window: list[float] = field(default_factory=lambda: [0.0, 0.0])
-    # the Gaussian count densification may grow to (gaussian_budget; not saved:
-    # recomputed from the config and photos on resume)
+    # the Gaussian count densification may grow to (gaussian_budget; 0: the
+    # config's max_gaussians; not saved: recomputed from the config and photos)
     budget: int = 0
     rounds: list[list[float]] = field(default_factory=list)
     stopped: list[int] = field(default_factory=list)
@@ -376,7 +376,7 @@ def _densify_schedule(cfg: Any, state: TrainState, step: int) -> None:
             cfg.densify_grad,
             cfg.percent_dense,
             gen,
-            state.budget if state.growing else n0,
+            (state.budget or cfg.max_gaussians) if state.growing else n0,
         )
         with torch.no_grad():
             opac = torch.sigmoid(model.params["opacity_logits"])
