@@ -71,6 +71,15 @@ bench: setup
 	$(BIN)/python bench/omp_steps.py --data $(DATA) --work $(WORK)/omp_steps
 	$(BIN)/python bench/real.py --work $(WORK)/real
 	$(BIN)/python bench/real.py --work $(WORK)/real --sets fountain_p11 --megapixels 12
+	$(BIN)/python bench/sfm.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/sfm --variants \
+		repeat_threshold=0+pixel_scale=1+min_num_matches=15+min_pose_inliers=30 default
+	$(BIN)/python bench/real.py --work $(WORK)/real --sfm-only \
+		repeat_threshold=0+pixel_scale=1+min_num_matches=15+min_pose_inliers=30 default
+	$(BIN)/python bench/reconstruct.py --parts variants --seeds 0 --data $(DATA) --work $(WORK)/knee \
+		--variant cap12k:max_gaussians=12000 --variant cap17k:max_gaussians=17000
+	$(BIN)/python bench/reconstruct.py --parts variants --seeds 1 2 --data $(DATA) --work $(WORK)/knee \
+		--variant rule2700:gaussians_per_mpx=2700
+	$(BIN)/python bench/real.py --work $(WORK)/real --sets herzjesu_p8 --set reconstruct.gaussians_per_mpx=2700
 
 # the accuracy instrument (issue 20): ACC_SEEDS seeds of the `small` preset, every
 # variant, ceilings, cluster-bootstrap CIs; dev = the first half of the seeds, test

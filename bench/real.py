@@ -147,8 +147,14 @@ def run_set(args: argparse.Namespace, name: str) -> dict:
         for v in scene.views
     }
     res.update(pose_error(est, truth_cameras(src)))
-    res["picture"] = str((ROOT / "docs" / "img" / f"real_{tag}.jpg").relative_to(ROOT))
-    picture(art, scene, ROOT / res["picture"])
+    # the docs' picture is the default config's; runs with --set keep theirs in work
+    pic = (
+        ROOT / "docs" / "img" / f"real_{tag}.jpg"
+        if not args.set
+        else args.work / f"real_{tag}_set.jpg"
+    )
+    res["picture"] = str(pic)
+    picture(art, scene, pic)
     return res
 
 
