@@ -38,14 +38,11 @@ from pathlib import Path
 import h5py
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import ROOT, Results  # noqa: E402  (same folder)
+from common import OMP_SETTINGS, ROOT, Results  # noqa: E402  (same folder)
 
 REAL = ROOT.parent / "shared" / "data" / "real" / "fountain_p11"
 SETTINGS = {
-    "spin": {"OMP_WAIT_POLICY": "ACTIVE"},
-    "gomp": {"GOMP_SPINCOUNT": "300000"},
-    "passive": {"OMP_WAIT_POLICY": "PASSIVE"},
-    "spin3k": {"GOMP_SPINCOUNT": "3000"},
+    **{k: OMP_SETTINGS[k] for k in ("spin", "gomp", "passive", "spin3k")},
     "1thread": {"PTOVS_THREADS": "1"},
 }
 

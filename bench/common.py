@@ -114,6 +114,33 @@ def instrument_chain(scene: Path, work: Path, config: Path, variant: str = "male
     return Chain(ctx, resolve_scene(ctx, None, scene), variant_sets(variant))
 
 
+OMP_SETTINGS = {
+    "spin": {"OMP_WAIT_POLICY": "ACTIVE"},
+    "gomp": {"GOMP_SPINCOUNT": "300000"},
+    "passive": {"OMP_WAIT_POLICY": "PASSIVE"},
+    "spin1k": {"GOMP_SPINCOUNT": "1000"},
+    "spin3k": {"GOMP_SPINCOUNT": "3000"},
+    "spin10k": {"GOMP_SPINCOUNT": "10000"},
+}
+"""OpenMP wait settings the busy-machine benchmarks compare (environment overrides)."""
+
+
+def camera_pose(cam_from_world) -> tuple:
+    """(R camera-to-world [3, 3], centre [3]) of a [3, 4] or [4, 4] cam_from_world."""
+    import numpy as np
+
+    m = np.asarray(cam_from_world, dtype=np.float64)
+    r = m[:3, :3].T
+    return r, -(r @ m[:3, 3])
+
+
+def _angle_deg(d) -> float:
+    """The rotation angle of a 3×3 rotation matrix, in degrees."""
+    import numpy as np
+
+    return float(np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1))))
+
+
 def pose_error(est: dict, truth: dict) -> dict:
     """Pose error of estimated cameras against the true ones after a Sim3 alignment
     of the camera centres, and (rot_aligned_*) after the world rotation that best
@@ -130,18 +157,14 @@ def pose_error(est: dict, truth: dict) -> dict:
     rs = sim.rotation.matrix()
     rot = []
     for n in names:
-        d = (rs @ est[n][0]).T @ truth[n][0]
-        rot.append(np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1))))
+        rot.append(_angle_deg((rs @ est[n][0]).T @ truth[n][0]))
     centre = np.linalg.norm(np.array([sim * p for p in e]) - g, axis=1)
     # rotations alone: the world rotation that best maps the estimated camera
     # rotations onto the true ones (orthogonal Procrustes), free of the centres
     m = sum(est[n][0] @ truth[n][0].T for n in names)
     u, _, vt = np.linalg.svd(m)
     a = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-    rot_only = []
-    for n in names:
-        d = (a.T @ est[n][0]).T @ truth[n][0]
-        rot_only.append(np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1))))
+    rot_only = [_angle_deg((a.T @ est[n][0]).T @ truth[n][0]) for n in names]
     return dict(
         rot_aligned_median_deg=float(np.median(rot_only)),
         rot_aligned_p90_deg=float(np.percentile(rot_only, 90)),

@@ -30,14 +30,10 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import ROOT, Results, bench_scene  # noqa: E402  (same folder)
+from common import OMP_SETTINGS, ROOT, Results, bench_scene  # noqa: E402  (same folder)
 
 SETTINGS = {
-    "passive": {"OMP_WAIT_POLICY": "PASSIVE"},
-    "gomp": {"GOMP_SPINCOUNT": "300000"},
-    "spin1k": {"GOMP_SPINCOUNT": "1000"},
-    "spin3k": {"GOMP_SPINCOUNT": "3000"},
-    "spin10k": {"GOMP_SPINCOUNT": "10000"},
+    k: OMP_SETTINGS[k] for k in ("passive", "gomp", "spin1k", "spin3k", "spin10k")
 }
 
 

@@ -31,7 +31,14 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import ROOT, Results, pose_error, print_header, run_ptovs  # noqa: E402  (same folder)
+from common import (  # noqa: E402  (same folder)
+    ROOT,
+    Results,
+    camera_pose,
+    pose_error,
+    print_header,
+    run_ptovs,
+)
 
 REAL = ROOT.parent / "shared" / "data" / "real"
 
@@ -139,13 +146,7 @@ def run_set(args: argparse.Namespace, name: str) -> dict:
         gaussians=m.get("gaussians"),
         test_views=[v.name for v in scene.test_views()],
     )
-    est = {
-        v.name: (
-            v.cam_from_world[:3, :3].T,
-            -(v.cam_from_world[:3, :3].T @ v.cam_from_world[:3, 3]),
-        )
-        for v in scene.views
-    }
+    est = {v.name: camera_pose(v.cam_from_world) for v in scene.views}
     res.update(pose_error(est, truth_cameras(src)))
     # the docs' picture is the default config's; runs with --set keep theirs in work
     pic = (
@@ -179,13 +180,12 @@ def run_sfm_only(args: argparse.Namespace, name: str, variant: str) -> dict:
     out = run_sfm(folder / "images", work, config)
     seconds = time.perf_counter() - t0
     rec = pycolmap.Reconstruction(str(out["model_dir"]))
-    est = {}
-    for i in rec.reg_image_ids():
-        m = rec.images[i].cam_from_world().matrix()
-        est[Path(rec.images[i].name).stem + ".jpg"] = (
-            m[:3, :3].T,
-            -(m[:3, :3].T @ m[:3, 3]),
+    est = {
+        Path(rec.images[i].name).stem + ".jpg": camera_pose(
+            rec.images[i].cam_from_world().matrix()
         )
+        for i in rec.reg_image_ids()
+    }
     res = dict(
         registered=out["report"]["registered"],
         photos=out["report"]["photos"],

@@ -24,7 +24,14 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import ROOT, Results, bench_scene, pose_error, print_header  # noqa: E402  (same folder)
+from common import (  # noqa: E402  (same folder)
+    ROOT,
+    Results,
+    bench_scene,
+    camera_pose,
+    pose_error,
+    print_header,
+)
 
 
 def parse_variant(text: str) -> dict:
@@ -82,10 +89,8 @@ def run_variant(scene: Path, work: Path, overrides: dict) -> dict:
     for i in best.reg_image_ids():
         im = best.images[i]
         name = Path(im.name).stem + ".jpg" if im.name not in truth else im.name
-        m = im.cam_from_world().matrix()  # [3, 4]
-        est[name] = (m[:3, :3].T, -(m[:3, :3].T @ m[:3, 3]))
-        t = truth[name]
-        gt[name] = (t[:3, :3].T, -(t[:3, :3].T @ t[:3, 3]))
+        est[name] = camera_pose(im.cam_from_world().matrix())
+        gt[name] = camera_pose(truth[name])
     err = pose_error(est, gt)
     return dict(
         registered=report["registered"],
