@@ -180,7 +180,16 @@ def gaussian_budget(cfg: Any, images: list[np.ndarray]) -> int:
     if per_mpx <= 0:
         return int(cfg.max_gaussians)
     mpx = sum(int(im.shape[0]) * int(im.shape[1]) for im in images) / 1e6
-    return int(min(cfg.max_gaussians, max(1, round(per_mpx * mpx))))
+    budget = int(min(cfg.max_gaussians, max(1, round(per_mpx * mpx))))
+    if budget < cfg.max_gaussians:
+        log.info(
+            "Gaussian budget %d (%g per Mpx x %.2f Mpx of train photos; ceiling %d)",
+            budget,
+            per_mpx,
+            mpx,
+            cfg.max_gaussians,
+        )
+    return budget
 
 
 def view_order(step: int, n: int, seed: int) -> int:
@@ -224,14 +233,6 @@ def train(
         _restore(state, saved)
         log.info("resumed at iteration %d of %d", state.step, cfg.iterations)
     state.budget = gaussian_budget(cfg, images)
-    if state.budget < cfg.max_gaussians:
-        log.info(
-            "Gaussian budget %d (%g per Mpx x %.2f Mpx of train photos; ceiling %d)",
-            state.budget,
-            cfg.gaussians_per_mpx,
-            sum(im.shape[0] * im.shape[1] for im in images) / 1e6,
-            cfg.max_gaussians,
-        )
     model, nets = state.model, state.nets
     tensors = [torch.from_numpy(np.ascontiguousarray(im)) for im in images]
     prepared = [nets.prepare(im) for im in images] if nets is not None else []
