@@ -7,7 +7,8 @@ python bench/reconstruct.py --parts budgets sfm presets --seeds 0
 Parts:
   default  the default config through the CLI: wall time, peak RSS, Gaussians;
            test-view PSNR with the image's own embedding (true transient pixels
-           excluded); appearance transfer (view i with image j's embedding against
+           excluded), and on the right half with the embedding fitted to the left
+           half (NeRF-W's protocol; `test_psnr_fit`, f_α's `test_psnr_right`); appearance transfer (view i with image j's embedding against
            the world re-rendered with j's appearance and no occluders); transient
            mask AUROC against the true masks of the train images
   plain    the same with --set wild=false (plain 3DGS, same code and budget)
@@ -18,6 +19,7 @@ Parts:
            and PSNR of both at equal (short) budgets
   variants one run per --variant LABEL:KEY=V[,KEY=V...] (e.g.
            --variant affine:appearance=affine), the default's figures each
+  rescore  the same figures for fields trained earlier (--artifact SEED:PATH)
   errors   the error budget (issue 24): today's field; the photos re-rendered
            without occluders; under one neutral appearance without occluders
            (the static ceiling); a larger Gaussian cap (--max-gaussians)
@@ -62,7 +64,7 @@ def evaluate(art_path: Path, scene_dir: Path, n_transfer: int = 8) -> dict:
     world, cams = load_truth(scene_dir)
     records = {r["name"]: r for r in cams["images"]}
     out: dict = {"gaussians": len(field)}
-    test_psnr = []
+    test_psnr, right_psnr, fit_psnr = [], [], []
     for v in scene.test_views():
         cam = Camera.from_view(v)
         img = scene.load_image(v)
@@ -70,7 +72,18 @@ def evaluate(art_path: Path, scene_dir: Path, n_transfer: int = 8) -> dict:
         rgb = field.render(cam, emb)[0].numpy()
         transient = np.load(truth_dir / f"{v.stem}.npz")["transient"] > 0.5
         test_psnr.append(psnr(rgb, img, ~transient))
+        if field.wild:  # NeRF-W's protocol: fit l on the left half, score the right
+            left = ~transient
+            left[:, img.shape[1] // 2 :] = False
+            right = ~transient & ~left
+            right[:, : img.shape[1] // 2] = False
+            fit = field.fit_embedding(cam, img, left, init=emb[0])
+            right_psnr.append(psnr(rgb, img, right))
+            fit_psnr.append(psnr(field.render(cam, fit[None])[0].numpy(), img, right))
     out["test_psnr"] = float(np.nanmean(test_psnr))
+    if fit_psnr:
+        out["test_psnr_right"] = float(np.nanmean(right_psnr))
+        out["test_psnr_fit"] = float(np.nanmean(fit_psnr))
     # appearance transfer: test view i under train image j's appearance
     train = scene.train_views()
     rng = np.random.default_rng(0)
@@ -231,6 +244,19 @@ def presets_part(work: Path, scene: Path, iterations: int) -> list[dict]:
     return rows
 
 
+def _variant_row(label: str, seed: int, r: dict) -> str:
+    fit = (
+        f"{r['test_psnr_right']:.2f} → {r['test_psnr_fit']:.2f}"
+        if "test_psnr_fit" in r
+        else "–"
+    )
+    return (
+        f"| {label} | {seed} | {r['wall_s']} | {r['psnr_train']:.2f} | "
+        f"{r['test_psnr']:.2f} | {fit} | {r['transfer_psnr']:.2f} | "
+        f"{r['mask_auroc']:.3f} | {r['gaussians']} |"
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -248,9 +274,21 @@ def main() -> None:
         default=[],
         help="variants: LABEL:KEY=V[,KEY=V...] (reconstruct --set values)",
     )
+    ap.add_argument(
+        "--artifact",
+        action="append",
+        default=[],
+        metavar="SEED:PATH",
+        help="rescore: a reconstruct artifact of bench seed SEED to score again",
+    )
     ap.add_argument("--data", type=Path, default=ROOT / "data")
     ap.add_argument("--work", type=Path, default=ROOT / "work" / "bench")
     args = ap.parse_args()
+    by_seed: dict[int, list[Path]] = {}
+    for spec in args.artifact:
+        seed, _, path = spec.partition(":")
+        by_seed.setdefault(int(seed), []).append(Path(path))
+    args.artifact = by_seed
     args.work.mkdir(parents=True, exist_ok=True)
     results = Results(args.work / "bench_reconstruct.json")
     save = results.save
@@ -286,12 +324,13 @@ def main() -> None:
                 )
                 results[f"variant_{label}_s{seed}"] = r
                 save()
-                print(
-                    f"| {label} | {seed} | {r['wall_s']} | {r['test_psnr']:.2f} | "
-                    f"{r['transfer_psnr']:.2f} | {r['mask_auroc']:.3f} | "
-                    f"{r['gaussians']} | {r['psnr_train']:.2f} |",
-                    flush=True,
-                )
+                print(_variant_row(label, seed, r), flush=True)
+        if "rescore" in args.parts:  # score fields trained earlier (no training)
+            for path in args.artifact.get(seed, []):
+                r = evaluate(path, scene)
+                results[f"rescore_{path.parent.parent.parent.name}_s{seed}"] = r
+                save()
+                print(_variant_row(str(path), seed, {"wall_s": "–", **r}), flush=True)
         if "errors" in args.parts:
             for label, r in error_budget(
                 args.work / "errors", scene, args.max_gaussians

@@ -339,6 +339,34 @@ def _field(wild=True, n=80):
     )
 
 
+def test_fit_embedding_recovers_an_appearance():
+    """Test-time fitting moves a wrong embedding towards the one that drew the
+    image; no pixels = the start unchanged; the nets stay trainable after."""
+    torch.manual_seed(0)
+    field = _field()
+    cam = _camera()
+    want = torch.randn(32)
+    target = field.render(cam, want[None])[0].numpy()
+    start = torch.zeros(32)
+    before = float(np.abs(field.render(cam, start[None])[0].numpy() - target).mean())
+    assert before > 1e-3
+    got = field.fit_embedding(cam, target, init=start, steps=60, lr=0.05)
+    after = float(np.abs(field.render(cam, got[None])[0].numpy() - target).mean())
+    assert torch.isfinite(got).all() and after < 0.5 * before
+    again = field.fit_embedding(cam, target, init=start, steps=60, lr=0.05)
+    torch.testing.assert_close(got, again, rtol=0, atol=0)  # deterministic
+    none = np.zeros(target.shape[:2], bool)
+    same = field.fit_embedding(cam, target, none, init=start)
+    torch.testing.assert_close(same, start, rtol=0, atol=0)
+    f_alpha = field.fit_embedding(cam, target, steps=0)  # f_α's own reading
+    torch.testing.assert_close(f_alpha, field.embed(target))
+    assert all(p.requires_grad for p in field.nets.parameters())
+    with pytest.raises(ValueError, match="does not fit"):
+        field.fit_embedding(cam, target, np.ones((3, 3), bool), init=start)
+    with pytest.raises(ValueError, match="plain"):
+        _field(wild=False).fit_embedding(cam, target)
+
+
 def test_render_batched_equals_one_by_one_and_is_clamped():
     field = _field()
     cam = _camera()
@@ -403,6 +431,44 @@ def test_affine_appearance_is_the_colour_map_it_claims():
     torch.testing.assert_close(got[keep], want[keep], rtol=1e-10, atol=1e-10)
     with pytest.raises(ValueError, match="per-Gaussian"):
         nets.delta_sh(sh, means, emb)
+
+
+def test_shading_appearance_is_the_gain_it_claims():
+    """ΔSH of the shading head = exp(A(l) + g·B(l))·colour after eval_sh (float64),
+    identity at the start, the log-gain bounded for huge inputs."""
+    from ptovs.nets.wild import GAUSS_DIM
+    from ptovs.raster import eval_sh
+
+    torch.manual_seed(0)
+    nets = WildNets("cpu", 16, appearance="shading", delta_scale=4.0).double()
+    assert nets.gauss_dim == GAUSS_DIM
+    n = 40
+    sh = 0.1 * torch.randn(n, 16, 3, dtype=torch.float64)
+    sh[:, 0] = 0.5
+    gauss = torch.randn(n, GAUSS_DIM, dtype=torch.float64)
+    emb = torch.randn(32, dtype=torch.float64)
+    means = torch.randn(n, 3, dtype=torch.float64)
+    assert float(nets.delta_sh(sh, means, emb, gauss).abs().max()) == 0.0  # identity
+    net = nets.f_gamma
+    torch.nn.init.normal_(net.out.weight, std=0.005)
+    torch.nn.init.normal_(net.out.bias, std=0.005)
+    h = (net.out.weight @ emb + net.out.bias) * 4.0
+    u = h[:3] + gauss @ h[3:].reshape(GAUSS_DIM, 3)
+    assert float(u.abs().max()) < 2.0  # inside the tanh's near-linear range
+    want_gain = torch.exp(torch.tanh(u / 4.0) * 4.0)
+    dirs = torch.randn(n, 3, dtype=torch.float64)
+    base = eval_sh(3, sh, dirs)
+    got = eval_sh(3, sh + nets.delta_sh(sh, means, emb, gauss), dirs)
+    keep = base.min(1).values > 0  # eval_sh clamps at 0 before the gain
+    assert int(keep.sum()) > n // 2
+    torch.testing.assert_close(
+        got[keep], (want_gain * base)[keep], rtol=1e-10, atol=1e-10
+    )
+    with pytest.raises(ValueError, match="shading appearance needs per-Gaussian"):
+        nets.delta_sh(sh, means, emb)
+    # huge embeddings: the gain stays finite and within e^±bound
+    g = net.log_gain(emb * 1e12, gauss * 1e6)
+    assert torch.isfinite(g).all() and float(g.abs().max()) <= 4.0
 
 
 def test_affine_embeddings_follow_densify_and_subset():

@@ -545,14 +545,15 @@ def test_import_through_cli_and_refusals(tmp_path, tiny_scene_dir):
     assert res.exit_code != 0 and "does not exist" in res.output
 
 
-def test_appearance_options_round_trip(tmp_path, tiny_scene_dir):
-    """The measured options (affine appearance, colour map, image statistics,
-    adaptive budget) train, store, load and bake: the loaded field renders the
-    stored own-appearance PSNR, and the PLY bakes without NaN."""
+@pytest.mark.parametrize("appearance", ["affine", "shading"])
+def test_appearance_options_round_trip(tmp_path, tiny_scene_dir, appearance):
+    """The measured options (affine or shading appearance, colour map, image
+    statistics, adaptive budget) train, store, load and bake: the loaded field
+    renders the stored own-appearance PSNR, and the PLY bakes without NaN."""
     from ptovs.field.export import baked_sh
 
     sets = [
-        "appearance=affine",
+        f"appearance={appearance}",
         "color_map=true",
         "image_stats=true",
         "growth_elasticity=0.5",

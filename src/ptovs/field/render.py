@@ -80,7 +80,7 @@ def gaussian_colors(
     nets: WildNets | None = None,
     embedding: Tensor | None = None,  # [D]
     visible_only: bool = True,
-    gauss: Tensor | None = None,  # [N, G] per-Gaussian embeddings (affine)
+    gauss: Tensor | None = None,  # [N, G] per-Gaussian embeddings (affine, shading)
 ) -> Tensor:
     """RGB [N, 3] of every Gaussian seen from `cam`, with ΔSH when nets are given."""
     if nets is not None and embedding is not None and means.shape[0]:
@@ -112,7 +112,7 @@ class WildField:
     embeddings: dict[str, Tensor] = field(default_factory=dict)
     background: Tensor | None = None  # [3] constant (plain 3DGS); None = from nets
     metrics: dict = field(default_factory=dict)
-    gauss_embed: Tensor | None = None  # [N, G] (affine appearance only)
+    gauss_embed: Tensor | None = None  # [N, G] (affine and shading appearances)
 
     def __len__(self) -> int:
         return len(self.gaussians)
@@ -200,10 +200,14 @@ class WildField:
         out = render(g, cam, torch.cat(cols, 1), backend=backend, depth=False)
         e = embeddings.shape[0]
         img = out.image.reshape(cam.height, cam.width, e, 3).permute(2, 0, 1, 3)
+        return self._finish(img, out.alpha, cam, embeddings).clamp(0, 1).contiguous()
+
+    def _finish(self, img: Tensor, alpha: Tensor, cam: Camera, embeddings: Tensor):
+        """Sky behind [E, H, W, 3] composited images, then each colour map."""
         if self.nets.sky is not None:
             dirs = ray_dirs(cam)
             sky = torch.stack([self.nets.background(dirs, emb) for emb in embeddings])
-            img = img + (1.0 - out.alpha)[None] * sky
+            img = img + (1.0 - alpha)[None] * sky
         if self.nets.f_map is not None:
             img = torch.stack(
                 [
@@ -211,7 +215,68 @@ class WildField:
                     for im, emb in zip(img, embeddings, strict=True)
                 ]
             )
-        return img.clamp(0, 1).contiguous()
+        return img
+
+    def fit_embedding(
+        self,
+        cam: Camera,
+        image: np.ndarray,  # [H, W, 3] in [0, 1]
+        mask: np.ndarray | None = None,  # [H, W] bool: pixels to fit
+        *,
+        init: Tensor | None = None,  # [D]; default f_α's embedding of the image
+        steps: int = 100,
+        lr: float = 0.02,
+        backend: str = "auto",
+    ) -> Tensor:
+        """The embedding [D] under which this view renders closest to `image`.
+
+        Test-time appearance fitting (NeRF-W's protocol for held-out photos):
+        f_α reads a photo it never trained on imperfectly, so the embedding is
+        refined by Adam on the L1 error of the masked pixels, everything else
+        frozen. Starts from f_α's embedding (or `init`); with no pixels to fit
+        it returns the start unchanged. Deterministic for a given thread count.
+        """
+        if self.nets is None:
+            raise ValueError("a plain (not in-the-wild) field has no embeddings")
+        start = self.embed(image) if init is None else init.detach().reshape(-1)
+        target = torch.from_numpy(np.ascontiguousarray(image, np.float32))
+        keep = (
+            torch.ones(target.shape[:2], dtype=torch.bool)
+            if mask is None
+            else torch.from_numpy(np.asarray(mask, bool))
+        )
+        if keep.shape != target.shape[:2]:
+            raise ValueError(f"mask {tuple(keep.shape)} does not fit the image")
+        if steps <= 0 or not bool(keep.any()):
+            return start.clone()
+        self.nets.eval()
+        frozen = [p for p in self.nets.parameters() if p.requires_grad]
+        for p in frozen:
+            p.requires_grad_(False)
+        emb = start.clone().requires_grad_(True)
+        opt = torch.optim.Adam([emb], lr=lr)
+        g = self.gaussians
+        try:
+            for _ in range(steps):
+                opt.zero_grad(set_to_none=True)
+                cols = gaussian_colors(
+                    g.means,
+                    self.sh,
+                    self.sh_degree,
+                    cam,
+                    self.nets,
+                    emb,
+                    gauss=self.gauss_embed,
+                )
+                out = render(g, cam, cols, backend=backend, depth=False)
+                img = self._finish(out.image[None], out.alpha, cam, emb[None])[0]
+                loss = (img - target).abs()[keep].mean()
+                loss.backward()
+                opt.step()
+        finally:
+            for p in frozen:
+                p.requires_grad_(True)
+        return emb.detach()
 
     # ----------------------------------------------------------------- loading
     @classmethod

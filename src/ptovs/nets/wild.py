@@ -9,6 +9,10 @@
 - or, with `appearance="affine"`, `AffineColorNet`: per Gaussian (learned
   embedding g, l, base colour) -> a per-channel affine colour map (WildGaussians'
   form), written as the ΔSH it equals.
+- or, with `appearance="shading"`, `ShadingColorNet`: a per-channel gain
+  exp(A(l) + g·B(l)), bilinear in the per-Gaussian embedding g and the image's l
+  (low-rank shading: sun direction and strength against each surface), also
+  written as the ΔSH it equals.
 
 Two presets with the same structure: `authors` (exactly the released layer sizes:
 256² inputs, widths 128…512, FC256; needed to import their checkpoints) and `cpu`
@@ -30,8 +34,8 @@ from torch.nn import functional as F  # noqa: N812
 
 from ptovs.raster import SH_C0
 
-APPEARANCES = ("delta-sh", "affine")
-GAUSS_DIM = 16  # per-Gaussian embedding of the affine appearance
+APPEARANCES = ("delta-sh", "affine", "shading")
+GAUSS_DIM = 16  # per-Gaussian embedding of the affine and shading appearances
 
 
 @dataclass(frozen=True)
@@ -304,11 +308,56 @@ class AffineColorNet(nn.Module):
         base = sh[:, 0] * SH_C0 + 0.5
         x = torch.cat((gauss, embedding.reshape(1, -1).expand(n, -1), base), 1)
         x = self.out(F.relu(self.fc2(F.relu(self.fc1(x)))))
-        a, b = x[:, None, :3], x[:, 3:]
-        delta = sh * a
-        return torch.cat(
-            (delta[:, :1] + ((0.5 * a[:, 0] + b) / SH_C0)[:, None], delta[:, 1:]), 1
-        )
+        return gain_as_delta_sh(sh, 1.0 + x[:, :3], x[:, 3:])
+
+
+def gain_as_delta_sh(sh: Tensor, gain: Tensor, offset: Tensor | None = None) -> Tensor:
+    """ΔSH [n, K, 3] whose colour is gain·colour + offset (gain, offset [n, 3]).
+
+    colour = SH·basis + 1/2, so gain·colour + offset = (gain·SH)·basis + 1/2 +
+    ((gain − 1)/2 + offset): every coefficient times (gain − 1), and the constant
+    through the DC basis value C0. Exact after `eval_sh`, so it bakes into a PLY.
+    """
+    a = gain - 1.0
+    dc_shift = 0.5 * a if offset is None else 0.5 * a + offset
+    delta = sh * a[:, None, :]
+    return torch.cat((delta[:, :1] + (dc_shift / SH_C0)[:, None], delta[:, 1:]), 1)
+
+
+class ShadingColorNet(nn.Module):
+    """Appearance as low-rank shading: colour_k(l) = exp(u_k(l)) · colour_k.
+
+    u_k(l) = A(l) + g_k·B(l) per channel, with A [3] and B [G, 3] one linear map
+    of the image's embedding l and g_k [G] a learned per-Gaussian embedding. A is
+    the photo's exposure and tint; g_k·B is how surface k answers this photo's
+    light (a Lambertian surface under a sun and sky is, to a few per cent, linear
+    in 9 lighting coefficients; G = 16 leaves room). No per-Gaussian MLP: one
+    [n, G] × [G, 3] product a view, against f_γ's six layers. The log-gain is
+    bounded (±`bound`, tanh) and starts at 0: identity at the start. `scale`
+    multiplies the map's output so that its steps at f_γ's learning rate move
+    colours as ΔSH's do.
+    """
+
+    def __init__(
+        self, embed_dim: int, gauss_dim: int, scale: float = 4.0, bound: float = 4.0
+    ):
+        super().__init__()
+        self.gauss_dim = gauss_dim
+        self.scale = float(scale)
+        self.bound = float(bound)
+        self.out = nn.Linear(embed_dim, 3 * (1 + gauss_dim))
+
+    def log_gain(self, embedding: Tensor, gauss: Tensor) -> Tensor:
+        """[n, 3] log-gain of n Gaussians (embeddings [n, G]) under l [D]."""
+        h = self.out(embedding.reshape(-1)) * self.scale
+        u = torch.addmm(h[:3], gauss, h[3:].reshape(self.gauss_dim, 3))
+        return torch.tanh(u / self.bound) * self.bound
+
+    def forward(
+        self, sh: Tensor, means: Tensor, embedding: Tensor, gauss: Tensor
+    ) -> Tensor:
+        """sh [n, K, 3], gauss [n, G], embedding [D] -> ΔSH [n, K, 3]."""
+        return gain_as_delta_sh(sh, torch.exp(self.log_gain(embedding, gauss)))
 
 
 class SkyNet(nn.Module):
@@ -365,6 +414,8 @@ class WildNets(nn.Module):
         d = p.embed_dim + (N_STATS if stats else 0)  # what f_γ, sky and map see
         if appearance == "affine":
             self.f_gamma = AffineColorNet(d, GAUSS_DIM, 2 * p.gamma_width)
+        elif appearance == "shading":
+            self.f_gamma = ShadingColorNet(d, GAUSS_DIM, delta_scale)
         else:
             self.f_gamma = ColorNet(n_coeffs, p, delta_scale, d)
         self.sky = SkyNet(d) if background else None
@@ -437,17 +488,17 @@ class WildNets(nn.Module):
     @property
     def gauss_dim(self) -> int:
         """Width of the per-Gaussian embedding the appearance needs (0: none)."""
-        return GAUSS_DIM if self.appearance == "affine" else 0
+        return GAUSS_DIM if self.appearance in ("affine", "shading") else 0
 
     def delta_sh(
         self, sh: Tensor, means: Tensor, embedding: Tensor, gauss: Tensor | None = None
     ) -> Tensor:
         """ΔSH [n, K, 3] for n Gaussians under embedding [D]; `gauss` [n, G] are
         the per-Gaussian embeddings (needed by the affine appearance)."""
-        if self.appearance == "affine":
+        if self.gauss_dim:
             if gauss is None or gauss.shape != (sh.shape[0], GAUSS_DIM):
                 raise ValueError(
-                    f"the affine appearance needs per-Gaussian embeddings "
+                    f"the {self.appearance} appearance needs per-Gaussian embeddings "
                     f"[{sh.shape[0]}, {GAUSS_DIM}]"
                 )
             return self.f_gamma(sh, means, embedding, gauss)
