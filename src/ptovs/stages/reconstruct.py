@@ -48,17 +48,21 @@ class Config:
     """Network sizes: "cpu" (64² inputs, narrow) or "authors" (their exact layers)."""
     mask_concat: Literal["features", "input"] = "features"
     """Where f_α sees the mask: the paper's "features" or the code's "input"."""
-    appearance: Literal["delta-sh", "affine"] = "delta-sh"
-    """f_γ's form: the paper's "delta-sh" (ΔSH from SH, PE(μ), l) or "affine" (a
-    per-channel affine colour map from a per-Gaussian embedding, l and the base
-    colour, as WildGaussians)."""
+    appearance: Literal["delta-sh", "affine", "shading"] = "shading"
+    """f_γ's form: "shading" (default: a per-channel gain exp(A(l) + g·B(l)),
+    bilinear in a per-Gaussian embedding g and l; low-rank shading, no MLP), the
+    paper's "delta-sh" (ΔSH from SH, PE(μ), l), or "affine" (a per-channel affine
+    colour map from a per-Gaussian embedding, l and the base colour, as
+    WildGaussians). With `color_map`, shading is 8-15 % faster than delta-sh at
+    +0.1 to +0.5 dB test PSNR on bench seeds 0-2 (docs/benchmarks.md, issue 24)."""
     image_stats: bool = True
     """Append 8 fixed colour statistics of the photo (mean, spread, chroma, sky
     brightness) to f_α's learned embedding (+0.5 to +2.1 dB test PSNR on bench
     seeds 0-2, docs/benchmarks.md, issue 24); false = the paper's embedding alone."""
-    color_map: bool = False
+    color_map: bool = True
     """A per-image 3×3 colour matrix and offset from the embedding, applied to the
-    rendered image (exposure, tint, black-and-white; bakes exactly into SH)."""
+    rendered image (exposure, tint, black-and-white or sepia, which a per-channel
+    gain cannot make; bakes exactly into SH)."""
     delta_sh_scale: float = 4.0
     """ΔSH = scale·tanh(·); the authors' 1 limits the DC colour shift to ±0.28."""
     sh_degree: int = 3
