@@ -80,6 +80,10 @@ bench: setup
 	$(BIN)/python bench/reconstruct.py --parts variants --seeds 1 2 --data $(DATA) --work $(WORK)/knee \
 		--variant rule2700:gaussians_per_mpx=2700
 	$(BIN)/python bench/real.py --work $(WORK)/real --sets herzjesu_p8 --set reconstruct.gaussians_per_mpx=2700
+	$(BIN)/python bench/reconstruct.py --parts variants --seeds 0 1 2 --data $(DATA) --work $(WORK)/appearance \
+		--variant delta:appearance=delta-sh,color_map=false --variant shading:appearance=shading,color_map=false
+	$(BIN)/python bench/reconstruct.py --parts photos --seeds 0 --data $(DATA) --work $(WORK)/appearance \
+		--artifact 0:$$(ls $(WORK)/appearance/variants/delta/bench_s0/reconstruct/*.h5 | head -1)
 
 # the accuracy instrument (issue 20): ACC_SEEDS seeds of the `small` preset, every
 # variant, ceilings, cluster-bootstrap CIs; dev = the first half of the seeds, test

@@ -20,6 +20,8 @@ Parts:
   variants one run per --variant LABEL:KEY=V[,KEY=V...] (e.g.
            --variant affine:appearance=affine), the default's figures each
   rescore  the same figures for fields trained earlier (--artifact SEED:PATH)
+  photos   per photo, a stored field (--artifact) against the photo re-rendered
+           without occluders, before and after the photo's best global colour map
   errors   the error budget (issue 24): today's field; the photos re-rendered
            without occluders; under one neutral appearance without occluders
            (the static ceiling); a larger Gaussian cap (--max-gaussians)
@@ -203,6 +205,58 @@ def sfm_part(work: Path, scene: Path) -> dict:
     return res
 
 
+def photo_errors(art_path: Path, scene_dir: Path, n_train: int = 40) -> dict:
+    """Where the appearance error lies, photo by photo (issue 24, fifth stop).
+
+    Each test photo and the first `n_train` train photos are rendered with their
+    own embedding and compared with the generator's re-render of the same camera
+    and appearance without occluders; then again after the best global colour map
+    of that photo (3×3 matrix + offset, least squares over its pixels). What the
+    map recovers is exposure, tint and filter; what it leaves is spatial (shading
+    that moves with each photo's sun). Grouped by split and by the generator's
+    `hard` flag (night, black-and-white, sepia, strong tint or exposure).
+    """
+    import cv2
+
+    from ptovs.artifacts import Artifact
+    from ptovs.field.losses import psnr
+    from ptovs.field.render import WildField
+    from ptovs.raster import Camera
+    from ptovs.scene import load_scene
+    from ptovs.synthetic.generate import load_truth, rerender
+
+    scene = load_scene(scene_dir)
+    with Artifact(art_path) as art:
+        field = WildField.from_artifact(art)
+    world, cams = load_truth(scene_dir)
+    records = {r["name"]: r for r in cams["images"]}
+    groups: dict[str, list[tuple[float, float]]] = {}
+    splits = [("test", v) for v in scene.test_views()]
+    splits += [("train", v) for v in scene.train_views()[:n_train]]
+    for split, v in splits:
+        rgb = field.render(Camera.from_view(v), field.embeddings_of([v.name]))[0]
+        rgb = rgb.numpy().astype(np.float64)
+        target, app = rerender(world, records[v.name], occluders="none")
+        t = cv2.resize(
+            target.image.astype(np.float32) / 255.0,
+            (v.width, v.height),
+            interpolation=cv2.INTER_AREA,
+        ).astype(np.float64)
+        x = np.concatenate((rgb.reshape(-1, 3), np.ones((rgb[..., 0].size, 1))), 1)
+        coef, *_ = np.linalg.lstsq(x, t.reshape(-1, 3), rcond=None)
+        mapped = np.clip(x @ coef, 0, 1).reshape(t.shape)
+        key = f"{split}_{'hard' if app.hard else 'normal'}"
+        groups.setdefault(key, []).append((psnr(rgb, t), psnr(mapped, t)))
+    return {
+        k: {
+            "photos": len(v),
+            "psnr": float(np.mean([a for a, _ in v])),
+            "psnr_colour_map": float(np.mean([b for _, b in v])),
+        }
+        for k, v in sorted(groups.items())
+    }
+
+
 def error_budget(
     work: Path, scene: Path, max_gaussians: int
 ) -> Iterator[tuple[str, dict]]:
@@ -331,6 +385,16 @@ def main() -> None:
                 results[f"rescore_{path.parent.parent.parent.name}_s{seed}"] = r
                 save()
                 print(_variant_row(str(path), seed, {"wall_s": "–", **r}), flush=True)
+        if "photos" in args.parts:  # the appearance error, photo by photo
+            for path in args.artifact.get(seed, []):
+                for group, r in photo_errors(path, scene).items():
+                    results[f"photos_{path.stem}_{group}_s{seed}"] = r
+                    save()
+                    print(
+                        f"| {path.stem} | {seed} | {group} | {r['photos']} | "
+                        f"{r['psnr']:.2f} | {r['psnr_colour_map']:.2f} |",
+                        flush=True,
+                    )
         if "errors" in args.parts:
             for label, r in error_budget(
                 args.work / "errors", scene, args.max_gaussians
