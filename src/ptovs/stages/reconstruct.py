@@ -2,8 +2,9 @@
 
 Trains 3D Gaussians from the scene's points3D with the WE-GS appearance networks
 (f_α embeds an image and its transient mask, f_β predicts the transient mask, f_γ
-shifts each Gaussian's SH for an embedding; by default the embedding also carries 8
-fixed colour statistics of the photo), or imports the authors' released
+maps an embedding to each Gaussian's colour: by default a low-rank shading gain and
+a per-photo colour matrix, or the paper's SH shift; by default the embedding also
+carries 8 fixed colour statistics of the photo), or imports the authors' released
 WE-GS model (`--set import_dir=DIR`). A folder of photos without a COLMAP model is
 first posed with pycolmap SfM (`ptovs.sfm`), cached in the work dir.
 
