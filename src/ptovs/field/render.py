@@ -185,22 +185,24 @@ class WildField:
             out = render(g, cam, cols, background=bg, backend=backend, depth=False)
             return out.image.clamp(0, 1)[None]
         self.nets.eval()
-        cols = [
-            gaussian_colors(
-                g.means,
-                self.sh,
-                self.sh_degree,
-                cam,
-                self.nets,
-                emb,
-                gauss=self.gauss_embed,
-            )
-            for emb in embeddings
-        ]
+        cols = [self._colors(cam, emb) for emb in embeddings]
         out = render(g, cam, torch.cat(cols, 1), backend=backend, depth=False)
         e = embeddings.shape[0]
         img = out.image.reshape(cam.height, cam.width, e, 3).permute(2, 0, 1, 3)
         return self._finish(img, out.alpha, cam, embeddings).clamp(0, 1).contiguous()
+
+    def _colors(self, cam: Camera, emb: Tensor) -> Tensor:
+        """RGB [N, 3] of every Gaussian from `cam` under one embedding [D]."""
+        g = self.gaussians
+        return gaussian_colors(
+            g.means,
+            self.sh,
+            self.sh_degree,
+            cam,
+            self.nets,
+            emb,
+            gauss=self.gauss_embed,
+        )
 
     def _finish(self, img: Tensor, alpha: Tensor, cam: Camera, embeddings: Tensor):
         """Sky behind [E, H, W, 3] composited images, then each colour map."""
@@ -259,16 +261,9 @@ class WildField:
         try:
             for _ in range(steps):
                 opt.zero_grad(set_to_none=True)
-                cols = gaussian_colors(
-                    g.means,
-                    self.sh,
-                    self.sh_degree,
-                    cam,
-                    self.nets,
-                    emb,
-                    gauss=self.gauss_embed,
+                out = render(
+                    g, cam, self._colors(cam, emb), backend=backend, depth=False
                 )
-                out = render(g, cam, cols, backend=backend, depth=False)
                 img = self._finish(out.image[None], out.alpha, cam, emb[None])[0]
                 loss = (img - target).abs()[keep].mean()
                 loss.backward()
