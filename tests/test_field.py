@@ -365,6 +365,10 @@ def test_fit_embedding_recovers_an_appearance():
         field.fit_embedding(cam, target, np.ones((3, 3), bool), init=start)
     with pytest.raises(ValueError, match="plain"):
         _field(wild=False).fit_embedding(cam, target)
+    bad = target.copy()
+    bad[0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        field.fit_embedding(cam, bad, init=start)
 
 
 def test_render_batched_equals_one_by_one_and_is_clamped():

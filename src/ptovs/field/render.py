@@ -249,6 +249,8 @@ class WildField:
         )
         if keep.shape != target.shape[:2]:
             raise ValueError(f"mask {tuple(keep.shape)} does not fit the image")
+        if not bool(torch.isfinite(target).all()):
+            raise ValueError("the image has NaN or infinite pixels")
         if steps <= 0 or not bool(keep.any()):
             return start.clone()
         self.nets.eval()

@@ -494,7 +494,7 @@ class WildNets(nn.Module):
         self, sh: Tensor, means: Tensor, embedding: Tensor, gauss: Tensor | None = None
     ) -> Tensor:
         """ΔSH [n, K, 3] for n Gaussians under embedding [D]; `gauss` [n, G] are
-        the per-Gaussian embeddings (needed by the affine appearance)."""
+        the per-Gaussian embeddings (needed by the affine and shading appearances)."""
         if self.gauss_dim:
             if gauss is None or gauss.shape != (sh.shape[0], GAUSS_DIM):
                 raise ValueError(

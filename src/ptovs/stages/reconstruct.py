@@ -65,7 +65,8 @@ class Config:
     rendered image (exposure, tint, black-and-white or sepia, which a per-channel
     gain cannot make; bakes exactly into SH)."""
     delta_sh_scale: float = 4.0
-    """ΔSH = scale·tanh(·); the authors' 1 limits the DC colour shift to ±0.28."""
+    """delta-sh: ΔSH = scale·tanh(·) (the authors' 1 limits the DC colour shift to
+    ±0.28); shading: the factor on its linear map's output (its step size)."""
     sh_degree: int = 3
     iterations: int = 2500
     seed: int = 0
