@@ -45,6 +45,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import ROOT, Results, bench_scene, run_ptovs  # noqa: E402  (same folder)
 
 
+def clean_view(world, record: dict, view, **kw) -> tuple[np.ndarray, object]:
+    """The generator's re-render of a truth camera without occluders, as float32
+    RGB in [0, 1] at the view's size, and its appearance (`rerender`'s keywords)."""
+    import cv2
+
+    from ptovs.synthetic.generate import rerender
+
+    target, app = rerender(world, record, occluders="none", **kw)
+    image = target.image.astype(np.float32) / 255.0
+    size = (view.width, view.height)
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA), app
+
+
 def evaluate(art_path: Path, scene_dir: Path, n_transfer: int = 8) -> dict:
     """Test PSNR (own embedding, transients excluded), transfer PSNR, mask AUROC."""
     import cv2
@@ -55,7 +68,7 @@ def evaluate(art_path: Path, scene_dir: Path, n_transfer: int = 8) -> dict:
     from ptovs.field.render import WildField
     from ptovs.raster import Camera
     from ptovs.scene import load_scene
-    from ptovs.synthetic.generate import load_truth, rerender
+    from ptovs.synthetic.generate import load_truth
     from ptovs.synthetic.world import Appearance
 
     scene = load_scene(scene_dir)
@@ -75,10 +88,9 @@ def evaluate(art_path: Path, scene_dir: Path, n_transfer: int = 8) -> dict:
         transient = np.load(truth_dir / f"{v.stem}.npz")["transient"] > 0.5
         test_psnr.append(psnr(rgb, img, ~transient))
         if field.wild:  # NeRF-W's protocol: fit l on the left half, score the right
-            left = ~transient
-            left[:, img.shape[1] // 2 :] = False
-            right = ~transient & ~left
-            right[:, : img.shape[1] // 2] = False
+            half = img.shape[1] // 2
+            left, right = ~transient, ~transient
+            left[:, half:] = right[:, :half] = False
             fit = field.fit_embedding(cam, img, left, init=emb[0])
             right_psnr.append(psnr(rgb, img, right))
             fit_psnr.append(psnr(field.render(cam, fit[None])[0].numpy(), img, right))
@@ -95,15 +107,13 @@ def evaluate(art_path: Path, scene_dir: Path, n_transfer: int = 8) -> dict:
         cam = Camera.from_view(v)
         emb = field.embeddings_of([j.name]) if field.wild else None
         rgb = field.render(cam, emb)[0].numpy()
-        target, _ = rerender(
+        target, _ = clean_view(
             world,
             records[v.name],
+            v,
             appearance=Appearance.from_dict(records[j.name]["appearance"]),
-            occluders="none",
             seed=k,
         )
-        target = target.image.astype(np.float32) / 255.0
-        target = cv2.resize(target, (v.width, v.height), interpolation=cv2.INTER_AREA)
         tr.append(psnr(rgb, target))
     out["transfer_psnr"] = float(np.mean(tr))
     scores, labels = [], []
@@ -216,14 +226,12 @@ def photo_errors(art_path: Path, scene_dir: Path, n_train: int = 40) -> dict:
     that moves with each photo's sun). Grouped by split and by the generator's
     `hard` flag (night, black-and-white, sepia, strong tint or exposure).
     """
-    import cv2
-
     from ptovs.artifacts import Artifact
     from ptovs.field.losses import psnr
     from ptovs.field.render import WildField
     from ptovs.raster import Camera
     from ptovs.scene import load_scene
-    from ptovs.synthetic.generate import load_truth, rerender
+    from ptovs.synthetic.generate import load_truth
 
     scene = load_scene(scene_dir)
     with Artifact(art_path) as art:
@@ -236,12 +244,8 @@ def photo_errors(art_path: Path, scene_dir: Path, n_train: int = 40) -> dict:
     for split, v in splits:
         rgb = field.render(Camera.from_view(v), field.embeddings_of([v.name]))[0]
         rgb = rgb.numpy().astype(np.float64)
-        target, app = rerender(world, records[v.name], occluders="none")
-        t = cv2.resize(
-            target.image.astype(np.float32) / 255.0,
-            (v.width, v.height),
-            interpolation=cv2.INTER_AREA,
-        ).astype(np.float64)
+        t, app = clean_view(world, records[v.name], v)
+        t = t.astype(np.float64)
         x = np.concatenate((rgb.reshape(-1, 3), np.ones((rgb[..., 0].size, 1))), 1)
         coef, *_ = np.linalg.lstsq(x, t.reshape(-1, 3), rcond=None)
         mapped = np.clip(x @ coef, 0, 1).reshape(t.shape)
