@@ -17,6 +17,8 @@ elements above 1e-5 are reported beside the maximum.
     python bench/raster.py                      # the full table (CI-sized: --quick)
     python bench/raster.py --quick              # only 1e4 x 128^2 x D=12
     python bench/raster.py --n 100000 --size 256 --d 12 --methods cpu fast
+    python bench/raster.py --methods torch cuda cuda64   # a GPU: the torch backend
+                                                         # there, float32 and float64
 """
 
 from __future__ import annotations
@@ -33,10 +35,10 @@ import tempfile
 import time
 from pathlib import Path
 
-METHODS = ("torch", "cpu", "fast")
+METHODS = ("torch", "cpu", "fast", "cuda", "cuda64")
 
 
-def make_scene(n: int, size: int, d: int, seed: int = 0, dtype=None):
+def make_scene(n: int, size: int, d: int, seed: int = 0, dtype=None, device="cpu"):
     import torch
 
     from ptovs.raster import Camera, Gaussians
@@ -58,13 +60,21 @@ def make_scene(n: int, size: int, d: int, seed: int = 0, dtype=None):
     va = torch.randn(size, size, 1, generator=g, dtype=torch.float64)
     K = torch.tensor([[size, 0, size / 2], [0, size, size / 2], [0, 0, 1]], dtype=dtype)
     cam = Camera(cam_from_world=torch.eye(4, dtype=dtype), K=K, width=size, height=size)
+    cam = cam.to(device)
     leaves = [
-        t.to(dtype).requires_grad_(True) for t in (means, quats, scales, opac, feats)
+        t.to(dtype=dtype, device=device).requires_grad_(True)
+        for t in (means, quats, scales, opac, feats)
     ]
     gs = Gaussians(
         means=leaves[0], quats=leaves[1], scales=leaves[2], opacities=leaves[3]
     )
-    return gs, cam, leaves, v.to(dtype), va.to(dtype)
+    return (
+        gs,
+        cam,
+        leaves,
+        v.to(dtype=dtype, device=device),
+        va.to(dtype=dtype, device=device),
+    )
 
 
 def _rss_mb() -> float:
@@ -86,12 +96,21 @@ def worker(args: argparse.Namespace) -> dict:
     torch.set_num_threads(args.threads)
     n, size, d, method = args.n, args.size, args.d, args.method
     ref64 = args.method == "ref64"
+    cuda = method.startswith("cuda")  # the torch backend on the GPU
     gs, cam, leaves, v, va = make_scene(
-        n, size, d, dtype=torch.float64 if ref64 else None
+        n,
+        size,
+        d,
+        dtype=torch.float64 if method in ("ref64", "cuda64") else None,
+        device="cuda" if cuda else "cpu",
     )
     feats = leaves[4]
-    backend = "torch" if method in ("torch", "ref64") else "cpu"
+    backend = "torch" if method in ("torch", "ref64") or cuda else "cpu"
     base = _rss_mb()
+
+    def sync():
+        if cuda:
+            torch.cuda.synchronize()
 
     def fwd():
         with torch.no_grad():
@@ -129,13 +148,16 @@ def worker(args: argparse.Namespace) -> dict:
     times = {}
     for name, fn in (("fwd", fwd), ("fwd_bwd", fwd_bwd)):
         fn()  # warm-up (and the compiled backend's first-call build)
+        sync()
         runs = []
         for _ in range(1 if ref64 else args.repeats):
             t0 = time.perf_counter()
             fn()
+            sync()
             runs.append(time.perf_counter() - t0)
         times[name] = statistics.median(runs)
-    peak = _peak_mb() - base
+    # on the GPU: the device memory the allocator peaked at, not host RSS
+    peak = torch.cuda.max_memory_allocated() / 2**20 if cuda else _peak_mb() - base
 
     out = fwd_bwd()
     if method == "fast":
@@ -143,13 +165,13 @@ def worker(args: argparse.Namespace) -> dict:
         result = {"image": out.detach().numpy(), "g_colors": f.grad.numpy()}
     else:
         result = {
-            "image": out.image.detach().numpy(),
-            "alpha": out.alpha.detach().numpy(),
+            "image": out.image.detach().cpu().numpy(),
+            "alpha": out.alpha.detach().cpu().numpy(),
         }
         for key, t in zip(
             ("means", "quats", "scales", "opacities", "colors"), leaves, strict=True
         ):
-            result[f"g_{key}"] = t.grad.numpy()
+            result[f"g_{key}"] = t.grad.cpu().numpy()
     if ref64:
         np.savez(args.ref, **result)
         return {}
@@ -208,7 +230,7 @@ def main() -> None:
     ap.add_argument("--n", type=int, nargs="+", default=[1000, 10000, 100000])
     ap.add_argument("--size", type=int, nargs="+", default=[128, 256])
     ap.add_argument("--d", type=int, nargs="+", default=[3, 12])
-    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    ap.add_argument("--methods", nargs="+", default=list(METHODS[:3]), choices=METHODS)
     ap.add_argument("--quick", action="store_true", help="only 1e4 x 128^2 x D=12")
     ap.add_argument("--tile", type=int, default=16)
     ap.add_argument("--threads", type=int, default=2)
@@ -231,7 +253,7 @@ def main() -> None:
         flush=True,
     )
     print(
-        "| N | image | D | method | fwd (ms) | fwd+bwd (ms) | peak (MB) | max rel. err "
+        "| N | image | D | method | fwd (ms) | fwd+bwd (ms) | peak (MB; GPU: device) | max rel. err "
         "| p99.9 rel. err | elements > 1e-5 | note |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|", flush=True)
