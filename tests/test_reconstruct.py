@@ -24,6 +24,7 @@ from ptovs.field.render import WildField, gaussian_colors
 from ptovs.nets.wild import N_STATS
 from ptovs.raster import Camera, render
 from ptovs.scene import load_scene
+from ptovs.stages.reconstruct import RESIDUAL_HALF, residual_mask
 
 # CI budget: the tiny scene trains in ~15 s with these; the mask starts early so
 # that the transient test has something to measure
@@ -131,6 +132,30 @@ def test_transient_mask_beats_chance(tiny_run, tiny_scene_dir):
             labels.append(t.ravel() > 0.5)
     value = auroc(np.concatenate(scores), np.concatenate(labels))
     assert value > 0.6, value  # measured ~0.8 at this budget; chance is 0.5
+
+
+def test_residual_mask_scores_what_the_field_cannot_explain():
+    rng = np.random.default_rng(0)
+    photo = rng.uniform(0.2, 0.8, (64, 48, 3)).astype(np.float32)
+    render = photo + rng.normal(0, 0.01, photo.shape).astype(np.float32)  # a good fit
+    render[16:48, 8:24] = 0.0  # an occluder the field does not have
+    m = residual_mask(render, photo, (16, 12))
+    assert m.shape == (16, 12) and m.dtype == np.float16
+    inside, outside = m[5:11, 3:5].astype(np.float32), m[:, 8:].astype(np.float32)
+    assert inside.min() > 0.9 and outside.max() < 0.05, (inside.min(), outside.max())
+    # float64 reference of the formula on a constant residual (blur-invariant)
+    r = 0.1
+    const = residual_mask(photo + r / np.sqrt(3), photo, (16, 12))
+    want = 1 - 2.0 ** -((r / RESIDUAL_HALF) ** 2)
+    np.testing.assert_allclose(const.astype(np.float64), want, atol=2e-3)
+    # hard cases: a perfect fit, NaN and huge renders, a 1-pixel mask
+    assert not residual_mask(photo, photo, (16, 12)).any()
+    bad = render.copy()
+    bad[0:8, 0:8] = np.nan
+    bad[40:, 30:] = 1e30
+    m = residual_mask(bad, photo, (16, 12)).astype(np.float32)
+    assert np.isfinite(m).all() and m[0, 0] > 0.99 and m[-1, -1] > 0.99
+    assert residual_mask(render, photo, (1, 1)).shape == (1, 1)
 
 
 def test_render_helper_matches_stored_field(tiny_run, tiny_scene_dir):
