@@ -17,6 +17,7 @@ APP_MODULES: dict[str, str] = {
     "style": "ptovs.apps.style",
     "roam": "ptovs.apps.roam",
     "table": "ptovs.apps.table",
+    "view": "ptovs.apps.view",
 }
 
 

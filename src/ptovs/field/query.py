@@ -234,6 +234,7 @@ class Querier:
             dict.fromkeys([*queries, *config.canonical, *BACKGROUND_PHRASES])
         )
         check_vocabulary(encoder, phrases)
+        self.encoder = encoder
         self.phrases = phrases
         self.index = {p: i for i, p in enumerate(phrases)}
         emb = torch.from_numpy(np.asarray(encoder.encode_texts(phrases), np.float32))
@@ -251,6 +252,24 @@ class Querier:
         self._tables: dict[tuple, torch.Tensor] = {}
         self.scene = inputs.scene
         self._visibility: torch.Tensor | None = None
+
+    def add_queries(self, texts: list[str]) -> list[str]:
+        """Make texts answerable after construction (an interactive session): the
+        new ones are checked against the encoder's vocabulary (InputError names
+        the unknown), embedded and appended to the decoder. Returns the texts,
+        stripped."""
+        texts = [t.strip() for t in texts]
+        if any(not t for t in texts):
+            raise InputError("query: empty query text")
+        new = [t for t in dict.fromkeys(texts) if t not in self.index]
+        if new:
+            check_vocabulary(self.encoder, new)
+            emb = np.asarray(self.encoder.encode_texts(new), np.float32)
+            self.decoder.add_phrases(torch.from_numpy(emb))
+            for t in new:
+                self.index[t] = len(self.phrases)
+                self.phrases.append(t)
+        return texts
 
     @torch.no_grad()
     def code_maps(self, view) -> tuple[torch.Tensor, torch.Tensor]:

@@ -75,24 +75,39 @@ class PhraseDecoder:
         self._table: Tensor | None = None
 
     @torch.no_grad()
-    def exact(self, codes: Tensor) -> Tensor:
-        """[..., 3] → [..., K] cosines by decoding every code."""
+    def exact(self, codes: Tensor, phrases: Tensor | None = None) -> Tensor:
+        """[..., 3] → [..., K] cosines by decoding every code (with `phrases`
+        [K, D] instead of this decoder's own, if given)."""
+        phrases = self.phrases if phrases is None else phrases.float()
         lead = codes.shape[:-1]
         flat = codes.reshape(-1, codes.shape[-1]).float()
-        out = torch.empty(len(flat), len(self.phrases))
+        out = torch.empty(len(flat), len(phrases))
         for a in range(0, len(flat), self.chunk):
             feats = self.decode(flat[a : a + self.chunk])
-            out[a : a + self.chunk] = feats @ self.phrases.T
-        return out.reshape(*lead, len(self.phrases))
+            out[a : a + self.chunk] = feats @ phrases.T
+        return out.reshape(*lead, len(phrases))
+
+    def _grid_table(self, phrases: Tensor) -> Tensor:
+        axis = torch.linspace(-1.0, 1.0, self.size)
+        grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1)
+        return self.exact(grid, phrases).permute(3, 0, 1, 2).contiguous()
 
     @property
     def table(self) -> Tensor:
         """[K, G, G, G] cosines at grid point (c0, c1, c2) = table[:, i0, i1, i2]."""
         if self._table is None:
-            axis = torch.linspace(-1.0, 1.0, self.size)
-            grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1)
-            self._table = self.exact(grid).permute(3, 0, 1, 2).contiguous()
+            self._table = self._grid_table(self.phrases)
         return self._table
+
+    @torch.no_grad()
+    def add_phrases(self, phrases: Tensor) -> None:
+        """Append unit phrase embeddings [k, D]: existing indices keep their meaning,
+        and a built table grows by the new phrases' cosines only (one decode of the
+        grid, not K)."""
+        phrases = phrases.float()
+        if self._table is not None:
+            self._table = torch.cat((self._table, self._grid_table(phrases)))
+        self.phrases = torch.cat((self.phrases, phrases))
 
     @torch.no_grad()
     def lookup(self, codes: Tensor, table: Tensor | None = None) -> Tensor:

@@ -50,6 +50,12 @@ class Gaussians:
     def __len__(self) -> int:
         return self.means.shape[0]
 
+    def covariances(self) -> Tensor:
+        """[N, 3, 3] world-frame covariances R·diag(s²)·Rᵀ (what splat viewers take)."""
+        m = _quat_to_rotmat(self.quats) * self.scales[:, None, :]
+        cov = m @ m.transpose(1, 2)
+        return 0.5 * (cov + cov.transpose(1, 2))  # symmetric to the last bit
+
     def to(self, *args: Any, **kwargs: Any) -> Gaussians:
         """Return a copy with every tensor passed through `Tensor.to(*args, **kwargs)`."""
         return Gaussians(
