@@ -31,7 +31,8 @@ $(VENV)/.installed: pyproject.toml
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q torch==2.13.0        # the CPU wheel; never an unpinned torch
 	$(BIN)/pip install -q torchvision==0.28.0  # matches torch 2.13 (for the extras)
-	$(BIN)/pip install -q -e '.[dev,clip,sam]'  # the extras' tests run in CI
+	$(BIN)/pip install -q -e '.[dev,clip,sam,view]'  # the extras' tests run in CI
+	$(BIN)/pip install -q --no-deps viser==1.0.0  # see pyproject's [view] extra
 	touch $@
 
 demo: setup
