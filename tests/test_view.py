@@ -9,6 +9,7 @@ import socket
 import subprocess
 import sys
 import time
+import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -259,8 +260,6 @@ def test_page_handles_drive_the_session(page, session, tmp_path):
 
 
 def test_page_serves_http(page):
-    import urllib.request
-
     port = page.server.get_port()
     with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as r:
         body = r.read().decode()
@@ -323,6 +322,9 @@ def test_page_in_a_real_browser(session, tmp_path):
             shot.parent.mkdir(exist_ok=True)
             tab.screenshot(path=str(shot))
             browser.close()
+        # closing the browser leaves the server serving
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as r:
+            assert r.status == 200
     finally:
         page.stop()
     img = cv2.cvtColor(cv2.imread(str(shot)), cv2.COLOR_BGR2RGB).astype(int)
@@ -330,6 +332,32 @@ def test_page_in_a_real_browser(session, tmp_path):
     r, g, b = img[..., 0], img[..., 1], img[..., 2]
     magenta = (r > 180) & (b > 180) & (g < 90)
     assert magenta.sum() > 200, f"no highlight in the screenshot ({magenta.sum()} px)"
+
+
+def test_view_command_prints_the_url_and_stops_on_ctrl_c(view_work, tiny_scene_dir):
+    _need_viser()
+    import signal
+
+    port = _free_port()
+    cmd = [sys.executable, "-m", "ptovs", "--work-dir", str(view_work), *RECON,
+           "view", "--data", str(tiny_scene_dir), "--port", str(port)]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)  # fmt: skip
+    try:
+        first = ""
+        deadline = time.time() + 120
+        while not first.startswith("view ") and time.time() < deadline:
+            first = proc.stdout.readline()
+            assert first or proc.poll() is None, "ptovs view ended early"
+        assert f"http://127.0.0.1:{port}" in first and "Ctrl-C" in first, first
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as r:
+            assert r.status == 200
+        # bound to the loopback only: the default host is not the network's
+        assert "0.0.0.0" not in first
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, out
+    assert "view: stopped" in out and "Traceback" not in out
 
 
 def test_view_help_lists_the_options():

@@ -478,9 +478,8 @@ def command(
         ) from None
     session = ViewSession(chain, out_dir)
     page = Page(session, host, port, heat_width)
-    shown = "localhost" if host in ("127.0.0.1", "localhost") else host
     click.echo(
-        f"view {ref.name}: http://{shown}:{port}  ({len(session.centers):,} Gaussians,"
+        f"view {ref.name}: http://{host}:{port}  ({len(session.centers):,} Gaussians,"
         f" ready in {time.perf_counter() - t0:.1f} s; Ctrl-C stops)"
     )
     try:
