@@ -50,10 +50,15 @@ class QueryAnswer:
     seconds: float
     mask: np.ndarray  # [P] bool
 
-    def line(self) -> str:
+    def line(self, sent: float | None = None) -> str:
+        """The panel's status line; `sent`: seconds from the press to the new
+        colours handed to the page."""
+        took = f"select {self.seconds * 1e3:.0f} ms"
+        if sent is not None:
+            took += f", highlight sent {sent * 1e3:.0f} ms"
         return (
             f"**{self.text}**: {self.selected:,} of {self.total:,} Gaussians, level "
-            f"{self.level}, score {self.score:.3f} ({self.seconds * 1e3:.0f} ms)"
+            f"{self.level}, score {self.score:.3f} ({took})"
         )
 
 
@@ -357,6 +362,7 @@ class Page:
         self.draw()
 
     def ask_phrase(self, text: str, client=None) -> QueryAnswer | None:
+        t0 = time.perf_counter()
         s = self.session
         try:
             with s.lock:
@@ -364,8 +370,9 @@ class Page:
         except InputError as exc:
             self.status.content = f"⚠ {exc}"
             return None
-        self.status.content = answer.line()
-        self.draw()
+        self.draw()  # the highlighted colours go out first, then the status line
+        sent = time.perf_counter() - t0
+        self.status.content = answer.line(sent)
         self.refresh_heatmap(client)
         return answer
 
