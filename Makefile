@@ -1,5 +1,6 @@
 # ptovs: set up, demo, test, benchmark; and run the pipeline over DATA/* scenes.
 #   make demo          fresh machine → venv, tiny synthetic scene, every stage, masks, metrics, a PLY
+#   make view          after make demo: roam the demo scene and ask it things in the browser
 #   make test          the test suite (what CI runs)
 #   make bench-accuracy  the accuracy instrument: 18 seeds, every variant, CIs (~90 min)
 #   make -j3 all       every scene under DATA in parallel, stages in order, then the
@@ -23,7 +24,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(WORK) --config $(CONFIG)
 # Gaussians, 44.9 %, at relevancy score 0.173)
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo test lint format bench bench-accuracy all scenes table status clean-work $(SCENES)
+.PHONY: setup demo view test lint format bench bench-accuracy all scenes table status clean-work $(SCENES)
 
 setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml
@@ -45,6 +46,10 @@ demo: setup
 	$(PTOVS) status --data $(DATA)/tiny_s0
 	@echo "masks, heatmaps, overlays: $(WORK)/tiny_s0/query-out/male/; metrics: $(WORK)/tiny_s0/evaluate.md"
 	@echo "selection: $(WORK)/tiny_s0/select.ply; styles: $(WORK)/tiny_s0/style-out/male/; video: $(WORK)/tiny_s0/tour.mp4"
+
+# after `make demo`: the demo scene in the browser (http://127.0.0.1:8080; Ctrl-C stops)
+view: setup
+	$(PTOVS) view --data $(DATA)/tiny_s0
 
 test: setup
 	$(BIN)/python -m pytest -q

@@ -35,7 +35,7 @@ from ptovs.stage import RunContext, chain_options
 
 HIGHLIGHT = (1.0, 0.0, 1.0)  # selected Gaussians: magenta, found by the browser test
 NEUTRAL = "neutral (mean of the photos)"
-SKY_POINTS = 4000  # the sky dome: a Fibonacci sphere of points coloured by f_sky
+SKY_POINTS = 20000  # the sky dome: a Fibonacci sphere of points coloured by f_sky
 
 
 @dataclass
@@ -150,13 +150,14 @@ class ViewSession:
             rgb[self.answer.mask] = HIGHLIGHT
         return rgb
 
-    def sky_points(self) -> tuple[np.ndarray, np.ndarray]:
-        """(positions [S, 3], RGB [S, 3]) of the sky dome around the scene."""
+    def sky_points(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """(positions [S, 3], RGB [S, 3], radius) of the sky dome: a sphere three
+        times as far from the scene's centre as its farthest camera."""
         cams = np.stack([_centre(v.cam_from_world) for v in self.views])
         centre = np.median(self.centers, 0)
         radius = 3.0 * float(np.max(np.linalg.norm(cams - centre, axis=1)) + 1e-6)
         pos = centre + radius * _fibonacci_sphere(SKY_POINTS)
-        return pos.astype(np.float32), self.baked(self.appearance)[1]
+        return pos.astype(np.float32), self.baked(self.appearance)[1], radius
 
     # ---------------------------------------------------------------- queries --
     def query(self, text: str) -> QueryAnswer:
@@ -339,27 +340,30 @@ class Page:
         self.play.on_click(lambda e: self.play_tour(e.client))
         self.server.on_client_connect(self._connected)
         self.draw()
+        self.draw_sky()
 
     # each handler is a plain method: tests call them, the page calls them
     def draw(self) -> None:
         s = self.session
         with s.lock:
             rgb = s.colors()
-            sky_pos, sky_rgb = s.sky_points()
         self.splats = self.server.scene.add_gaussian_splats(
             "/gaussians", s.centers, s.covariances, rgb, s.opacities
         )
+
+    def draw_sky(self) -> None:
+        """The sky dome under the chosen appearance (only when that changes)."""
+        with self.session.lock:
+            pos, rgb, radius = self.session.sky_points()
+        spacing = radius * np.sqrt(4 * np.pi / len(pos))  # between dome points
         self.sky = self.server.scene.add_point_cloud(
-            "/sky",
-            sky_pos,
-            sky_rgb,
-            point_size=float(np.linalg.norm(sky_pos[0] - np.median(s.centers, 0)))
-            * 0.06,
+            "/sky", pos, rgb, point_size=float(1.5 * spacing)
         )
 
     def set_appearance(self, name: str) -> None:
         self.session.appearance = name
         self.draw()
+        self.draw_sky()
 
     def ask_phrase(self, text: str, client=None) -> QueryAnswer | None:
         t0 = time.perf_counter()
