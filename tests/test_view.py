@@ -236,8 +236,12 @@ def page(session):
 def test_page_handles_drive_the_session(page, session, tmp_path):
     from ptovs.apps.view import HIGHLIGHT, NEUTRAL
 
-    answer = page.ask_phrase(PHRASE)
-    assert answer is not None and answer.selected > 0
+    # set the text and press the button through viser's handles (their callbacks
+    # run as a browser's would, without a client)
+    page.text.value = PHRASE
+    page.ask.value = True
+    answer = session.answer
+    assert answer is not None and answer.selected > 0 and answer.text == PHRASE
     assert f"{answer.selected:,} of" in page.status.content
     # the splats on the page carry the highlight exactly where the selection is
     rgba = np.ascontiguousarray(page.splats.buffer[:, 7]).view(np.uint8).reshape(-1, 4)
@@ -248,14 +252,20 @@ def test_page_handles_drive_the_session(page, session, tmp_path):
     )
     assert np.array_equal(magenta, answer.mask)
     session.out_dir = tmp_path
-    path = page.export_selection()
-    assert path is not None and len(read_ply(path)["means"]) == answer.selected
-    assert page.ask_phrase("Flying Spaghetti") is None
+    page.export.value = True
+    (path,) = tmp_path.glob("*.ply")
+    assert str(path) in page.status.content
+    assert len(read_ply(path)["means"]) == answer.selected
+    page.text.value = "Flying Spaghetti"
+    page.ask.value = True  # an unknown phrase: a message in the page, no crash
     assert "⚠" in page.status.content and "vocabulary" in page.status.content
-    page.set_appearance(session.appearances[1])
+    assert session.answer is answer  # the last good answer stays
+    page.appearance.value = session.appearances[1]
     assert session.appearance == session.appearances[1]
-    page.set_appearance(NEUTRAL)
-    page.clear_phrase()
+    page.appearance.value = NEUTRAL
+    page.nearest.value = True  # no browser connected: said in the page
+    assert "No browser" in page.status.content
+    page.clear.value = True
     assert session.answer is None
 
 

@@ -333,7 +333,6 @@ class Page:
         )
         self.appearance.on_update(lambda _: self.set_appearance(self.appearance.value))
         self.ask.on_click(lambda e: self.ask_phrase(self.text.value, e.client))
-        self.text.on_update(lambda e: None)
         self.clear.on_click(lambda e: self.clear_phrase(e.client))
         self.nearest.on_click(lambda e: self.go_nearest(e.client))
         self.export.on_click(lambda _: self.export_selection())
@@ -386,17 +385,26 @@ class Page:
         self.draw()
         self.refresh_heatmap(client)
 
-    def refresh_heatmap(self, client=None) -> None:
+    def _client(self, client=None):
+        """The client an event came from, else the first connected (or None)."""
         if client is None:
             clients = list(self.server.get_clients().values())
             client = clients[0] if clients else None
+        return client
+
+    def refresh_heatmap(self, client=None) -> None:
+        client = self._client(client)
         if client is None:
             return
         cam = _camera_of(client.camera, self.heat_width)
         with self.session.lock:
             self.heat.image = self.session.heatmap(cam)
 
-    def go_nearest(self, client) -> None:
+    def go_nearest(self, client=None) -> None:
+        client = self._client(client)
+        if client is None:
+            self.status.content = "No browser is connected."
+            return
         view = self.session.nearest_view(np.asarray(client.camera.position, float))
         wxyz, pos = _pose_of(view.cam_from_world)
         with client.atomic():
@@ -413,7 +421,11 @@ class Page:
         self.status.content = f"Wrote {path}"
         return path
 
-    def play_tour(self, client, frames: int = 90, fps: float = 30.0) -> None:
+    def play_tour(self, client=None, frames: int = 90, fps: float = 30.0) -> None:
+        client = self._client(client)
+        if client is None:
+            self.status.content = "No browser is connected."
+            return
         for cam in self.session.tour(frames):
             wxyz, pos = _pose_of(cam.cam_from_world.numpy())
             with client.atomic():
