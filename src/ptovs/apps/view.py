@@ -306,9 +306,12 @@ class Page:
         self.session = session
         self.heat_width = heat_width
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
-        if self.server.get_port() != port:  # raced for the port after check_port
+        if self.server.get_port() != port:  # lost the port after check_port
             self.server.stop()
-            check_port(host, port)
+            raise InputError(
+                f"view: port {port} on {host} was taken while starting; choose "
+                "another with --port"
+            )
         s = session
         ups = [-np.asarray(v.cam_from_world)[1, :3] for v in s.views]
         up = np.mean(ups, 0)
