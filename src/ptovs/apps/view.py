@@ -17,6 +17,7 @@ so it can be used and tested without a browser; `serve` puts it behind viser.
 from __future__ import annotations
 
 import re
+import signal
 import socket
 import threading
 import time
@@ -508,6 +509,10 @@ def command(
         f"view {ref.name}: http://{host}:{port}  ({len(session.centers):,} Gaussians,"
         f" ready in {time.perf_counter() - t0:.1f} s; Ctrl-C stops)"
     )
+    # Ctrl-C (and a TERM) stop the server, even when started with SIGINT ignored
+    # (a background job of a non-interactive shell inherits that)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
         while True:
             time.sleep(3600)

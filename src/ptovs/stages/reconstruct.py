@@ -214,7 +214,8 @@ def residual_mask(
         [height, width] float16 in [0, 1]; non-finite residuals count as transient.
     """
     diff = render.astype(np.float32) - photo.astype(np.float32)
-    r = np.sqrt(np.square(diff).sum(-1))
+    with np.errstate(over="ignore", invalid="ignore"):  # huge renders: inf, then 1
+        r = np.sqrt(np.square(diff).sum(-1))
     r = np.nan_to_num(r, nan=np.inf, posinf=np.inf)
     r = np.minimum(r, 4 * RESIDUAL_HALF)  # saturated: the score is 1 in float16
     r = cv2.resize(r, (size[1], size[0]), interpolation=cv2.INTER_AREA)
