@@ -342,17 +342,27 @@ class Page:
         self.export.on_click(lambda _: self.export_selection())
         self.play.on_click(lambda e: self.play_tour(e.client))
         self.server.on_client_connect(self._connected)
+        self.splats = None
         self.draw()
         self.draw_sky()
 
     # each handler is a plain method: tests call them, the page calls them
     def draw(self) -> None:
+        """Send the splats' colours: the whole node once, then only its buffer with
+        the colour words replaced (the page keeps its geometry)."""
         s = self.session
         with s.lock:
             rgb = s.colors()
-        self.splats = self.server.scene.add_gaussian_splats(
-            "/gaussians", s.centers, s.covariances, rgb, s.opacities
-        )
+        if self.splats is None:
+            self.splats = self.server.scene.add_gaussian_splats(
+                "/gaussians", s.centers, s.covariances, rgb, s.opacities
+            )
+            return
+        rgba = np.concatenate((rgb, s.opacities), 1)
+        words = (np.clip(rgba * 255.0, 0, 255).astype(np.uint8)).view(np.uint32)
+        buffer = self.splats.buffer.copy()
+        buffer[:, 7] = words[:, 0]  # viser's layout: word 7 is RGBA
+        self.splats.buffer = buffer
 
     def draw_sky(self) -> None:
         """The sky dome under the chosen appearance (only when that changes)."""
