@@ -365,7 +365,12 @@ def test_view_command_prints_the_url_and_stops_on_ctrl_c(view_work, tiny_scene_d
         assert "0.0.0.0" not in first
     finally:
         proc.send_signal(signal.SIGINT)
-        out, _ = proc.communicate(timeout=30)
+        try:
+            out, _ = proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()  # never leave a server behind
+            out, _ = proc.communicate()
+            pytest.fail(f"ptovs view did not stop on SIGINT within 30 s:\n{out}")
     assert proc.returncode == 0, out
     assert "view: stopped" in out and "Traceback" not in out
 
