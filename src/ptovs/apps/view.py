@@ -500,8 +500,10 @@ def command(
 ) -> None:  # fmt: skip
     """Serve a page to roam the scene and highlight what a phrase describes.
 
-    Needs the trained chain (`ptovs train-male`, or `make demo`) and the [view]
-    extra (pip install -e '.[view]'). Prints the URL; Ctrl-C stops the server.
+    Needs the trained chain (`ptovs train-male`, or `make demo`) and viser
+    (`make setup` installs it: the [view] extra, then viser==1.0.0 --no-deps).
+    Prints the URL; Ctrl-C stops the server. Buttons: Highlight the phrase,
+    Clear, Nearest photo, Export selection (PLY, into --out-dir), Play tour.
     """
     t0 = time.perf_counter()
     check_port(host, port)
