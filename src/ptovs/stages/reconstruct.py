@@ -11,8 +11,9 @@ first posed with pycolmap SfM (`ptovs.sfm`), cached in the work dir.
 Writes one artifact: Gaussians (raw 3DGS parameters), network weights, an
 embedding for every image (train and test), a low-resolution transient mask per
 train image (what the trained field, under the photo's own appearance, cannot
-explain: the colour residual, not f_β's guess), the training log and metrics. Training checkpoints every
-`checkpoint_every` iterations; a killed run resumes where it stopped.
+explain: the colour residual, not f_β's guess), the training log and metrics.
+Training checkpoints every `checkpoint_every` iterations; a killed run resumes where
+it stopped.
 """
 
 from __future__ import annotations
@@ -42,8 +43,8 @@ VERSION = 2 + 100 * RASTER_VERSION  # renders: the rasterizer's version is in th
 MASK_DIV = 4  # stored transient masks: working size / 4
 RESIDUAL_HALF = 0.22
 """The colour residual (L2 over RGB in [0, 1]) that a stored transient mask scores 0.5;
-chosen on bench seed 0 by the F1 of the mask cut at 0.5 (docs/benchmarks.md, issue 24,
-sixth stop)."""
+between the two cuts with the best F1 on bench seed 0, 0.20 and 0.25 (docs/benchmarks.md,
+issue 24, sixth stop)."""
 
 
 @dataclass(frozen=True)
