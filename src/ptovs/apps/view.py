@@ -72,6 +72,11 @@ def _fibonacci_sphere(n: int) -> np.ndarray:
     )
 
 
+def _image(appearance: str) -> str | None:
+    """The photo an appearance names (None: the neutral mean)."""
+    return None if appearance == NEUTRAL else appearance
+
+
 def _centre(cam_from_world: np.ndarray) -> np.ndarray:
     t = np.asarray(cam_from_world, float)
     return -t[:3, :3].T @ t[:3, 3]
@@ -92,8 +97,7 @@ class ViewSession:
         self.inputs = chain.inputs("query")
         self.scene = self.inputs.scene
         self.out_dir = Path(out_dir)
-        phrases: list[str] = []
-        self.querier = Querier(self.inputs, chain.config("query"), phrases)
+        self.querier = Querier(self.inputs, chain.config("query"), [])
         # the stand-in encoder knows a small vocabulary: decode it all once
         vocab = getattr(self.querier.encoder, "phrases", None)
         if vocab:
@@ -125,24 +129,29 @@ class ViewSession:
                 f"view: no appearance {appearance!r}; choose one of the scene's photos"
             )
         if appearance not in self._baked:
-            from ptovs.field.export import appearance_embedding, baked_sh
+            from ptovs.field.export import baked_sh
 
-            image = None if appearance == NEUTRAL else appearance
-            sh = baked_sh(self.field, image)
+            sh = baked_sh(self.field, _image(appearance))
             rgb = (SH_C0 * sh[:, 0] + 0.5).clamp(0, 1).numpy().astype(np.float32)
             sky = np.zeros((SKY_POINTS, 3), np.float32)
-            if self.field.nets is not None and self.field.embeddings:
-                emb = appearance_embedding(self.field, image)
+            emb = self._embedding(appearance)
+            if emb is not None:
                 dirs = torch.from_numpy(_fibonacci_sphere(SKY_POINTS)).float()
                 with torch.no_grad():
                     self.field.nets.eval()
-                    col = self.field.nets.background(dirs[None], emb)[0]
-                    mt = self.field.nets.color_matrix(emb)
-                    if mt is not None:
-                        col = col @ mt[0].T + mt[1]
+                    col = self.field.nets.background(dirs[None], emb[0])[0]
+                    col = self.field.nets.map_colors(col, emb[0])
                 sky = col.clamp(0, 1).numpy().astype(np.float32)
             self._baked[appearance] = (rgb, sky)
         return self._baked[appearance]
+
+    def _embedding(self, appearance: str) -> torch.Tensor | None:
+        """[1, D]: the appearance's embedding (None for a plain field)."""
+        if self.field.nets is None or not self.field.embeddings:
+            return None
+        from ptovs.field.export import appearance_embedding
+
+        return appearance_embedding(self.field, _image(appearance))[None]
 
     def colors(self) -> np.ndarray:
         """RGB [P, 3] to show: the chosen appearance, the selection in HIGHLIGHT."""
@@ -188,15 +197,8 @@ class ViewSession:
         (the plain render when no phrase is asked)."""
         from ptovs.visual import heatmap, to_uint8
 
-        emb = None
-        if self.field.wild and self.appearance != NEUTRAL:
-            emb = self.field.embeddings_of([self.appearance])
-        elif self.field.wild and self.field.embeddings:
-            from ptovs.field.export import appearance_embedding
-
-            emb = appearance_embedding(self.field)[None]
         with torch.no_grad():
-            rgb = self.field.render(cam, emb)[0].numpy()
+            rgb = self.field.render(cam, self._embedding(self.appearance))[0].numpy()
         if self.answer is None:
             return to_uint8(rgb)
         (res,) = self.querier.answer_view(cam, [self.answer.text])
@@ -229,11 +231,10 @@ class ViewSession:
         n = 1
         while (path := self.out_dir / f"{slug}-{n}.ply").exists():
             n += 1
-        image = None if self.appearance == NEUTRAL else self.appearance
         export_field_ply(
             self.inputs.reconstruct,
             path,
-            image=image,
+            image=_image(self.appearance),
             index=self.answer.mask,
             field=self.field,
         )
@@ -306,6 +307,7 @@ class Page:
 
         self.session = session
         self.heat_width = heat_width
+        self.splats = None  # the splat node, added by the first draw
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         if self.server.get_port() != port:  # lost the port after check_port
             self.server.stop()
@@ -342,7 +344,6 @@ class Page:
         self.export.on_click(lambda _: self.export_selection())
         self.play.on_click(lambda e: self.play_tour(e.client))
         self.server.on_client_connect(self._connected)
-        self.splats = None
         self.draw()
         self.draw_sky()
 
