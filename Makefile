@@ -11,10 +11,15 @@ BIN    := $(VENV)/bin
 DATA   ?= data
 WORK   ?= work
 CONFIG ?= configs/default.toml
-# scene folders under DATA (the PT-OVS `label` folder is not a scene)
-SCENES ?= $(filter-out label,$(notdir $(patsubst %/,%,$(wildcard $(DATA)/*/))))
-# implemented stages, in pipeline order (each issue adds its own)
-STAGES := reconstruct render-appearances extract-features uncertainty train-ae train-male query evaluate
+# the scene folders under DATA and the stages in order: one list (src/ptovs/pipeline.py)
+# for this Makefile and the cluster workflow (workflow/Snakefile); stdlib Python, so it
+# answers before the venv exists
+ROOT   := $(patsubst %/,%,$(dir $(abspath $(lastword $(MAKEFILE_LIST)))))
+PLAN   := PYTHONPATH=$(ROOT)/src $(PYTHON) -m ptovs.pipeline
+ifeq ($(origin SCENES),undefined)
+SCENES := $(shell $(PLAN) scenes $(DATA))
+endif
+STAGES := $(shell $(PLAN) stages)
 # what the pipeline targets run first and with (tests point these at their own env)
 SETUP     ?= setup
 PTOVS_BIN ?= $(BIN)/ptovs
@@ -24,7 +29,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(WORK) --config $(CONFIG)
 # Gaussians, 44.9 %, at relevancy score 0.173)
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo view test lint format bench bench-accuracy all scenes table status clean-work $(SCENES)
+.PHONY: setup demo view test test-slurm lint format bench bench-accuracy all scenes table status clean-work $(SCENES)
 
 setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml
@@ -32,7 +37,7 @@ $(VENV)/.installed: pyproject.toml
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q torch==2.13.0        # the CPU wheel; never an unpinned torch
 	$(BIN)/pip install -q torchvision==0.28.0  # matches torch 2.13 (for the extras)
-	$(BIN)/pip install -q -e '.[dev,clip,sam,view]'  # the extras' tests run in CI
+	$(BIN)/pip install -q -e '.[dev,clip,sam,view,cluster]'  # the extras' tests run in CI
 	$(BIN)/pip install -q --no-deps viser==1.0.0  # see pyproject's [view] extra
 	touch $@
 
@@ -53,6 +58,11 @@ view: setup
 
 test: setup
 	$(BIN)/python -m pytest -q
+
+# the workflow on a real single-node Slurm alone (root; apt-get install slurm-wlm munge
+# slurmdbd mariadb-server): `make test` runs it too
+test-slurm: setup
+	$(BIN)/python -m pytest -q -m slurm tests/test_workflow.py
 
 lint: setup
 	$(BIN)/ruff format --check . && $(BIN)/ruff check .
@@ -132,3 +142,7 @@ status: $(SETUP)
 
 clean-work:
 	rm -rf $(WORK)
+
+# `make print-STAGES`, `make print-SCENES DATA=...`: what a variable holds
+print-%:
+	@echo $($*)

@@ -41,25 +41,14 @@ from ptovs.artifacts import (
     artifact_key,
     fingerprint_files,
     provenance,
+    write_atomic,
 )
 from ptovs.config import build_config, canonical_json, merge, parse_sets
 from ptovs.errors import InputError, MissingInputError
+from ptovs.pipeline import PIPELINE  # the chain, in order (one list for every driver)
 
 log = logging.getLogger(__name__)
 
-# The chain, in dependency order: the one list every stage group, the CLI's chain
-# commands and the Makefile's STAGES are derived from (tests/test_chain.py holds the
-# Makefile to it). Stage NAME lives in module ptovs.stages.<name with _ for ->.
-PIPELINE = (
-    "reconstruct",
-    "render-appearances",
-    "extract-features",
-    "uncertainty",
-    "train-ae",
-    "train-male",
-    "query",
-    "evaluate",
-)
 STAGE_MODULES: dict[str, str] = {
     name: "ptovs.stages." + name.replace("-", "_") for name in ("sfm", *PIPELINE)
 }
@@ -674,6 +663,25 @@ class CommandExtras:
     force_help: str = "Recompute even if the artifact exists."
 
 
+DONE_HELP = (
+    "When the stage has succeeded, write this small JSON file (atomically) with the "
+    "artifact's key and path: the target the batch workflow (workflow/Snakefile) waits on."
+)
+
+
+def write_done(
+    path: Path, stage: str, scene: str, arts: Mapping[str, Artifact]
+) -> None:
+    """The done-file of a finished stage: which artifact (key, path) each variant
+    has, so a batch driver's target names the cached result, not a guessed path."""
+    record = {
+        "stage": stage,
+        "scene": scene,
+        "artifacts": {v: {"key": a.key, "path": str(a.path)} for v, a in arts.items()},
+    }
+    write_atomic(path, json.dumps(record, indent=1) + "\n")
+
+
 def stage_command(
     name: str,
     version: int,
@@ -705,6 +713,7 @@ def stage_command(
         data: Path | None,
         sets: tuple[str, ...],
         force: bool,
+        done: Path | None,
         **extra: Any,
     ) -> None:
         variants = extra.pop("variants", None) or (extra.pop("variant", "male"),)
@@ -731,12 +740,20 @@ def stage_command(
                 click.echo(f"{name}: {arts[variants[0]].path}")
             else:
                 extras.report(ctx, ref, arts, **extra)
+            if done is not None:
+                write_done(done, name, ref.name, arts)
         finally:
             for art in arts.values():
                 art.close()
 
     for option in (
         *extras.options,
+        click.option(
+            "--done",
+            type=click.Path(path_type=Path, dir_okay=False),
+            default=None,
+            help=DONE_HELP,
+        ),  # fmt: skip
         chain_options(variant=extras.variant, force=extras.force_help),
     )[::-1]:
         command = option(command)

@@ -17,17 +17,11 @@ from pathlib import Path
 
 import click
 
+from ptovs.pipeline import scene_folders
 from ptovs.stage import RunContext
 from ptovs.variants import VARIANTS
 
 FAILED_MARKER = "FAILED"
-
-
-def scene_folders(data: Path) -> list[Path]:
-    return sorted(
-        p for p in Path(data).iterdir() if p.is_dir() and p.name != "label"
-        and not p.name.startswith(".")
-    )  # fmt: skip
 
 
 def collect(
