@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import cv2
@@ -20,7 +18,6 @@ from ptovs.cli import main
 from ptovs.field import relevancy as rel
 from ptovs.field.ply import read_ply
 
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -369,44 +366,3 @@ def test_camera_path_passes_through_the_keyframes(tiny_scene_dir):
         assert np.allclose(got[:3, 3], key.cam_from_world[:3, 3], atol=1e-4)
     for a, b in zip(cams, cams[1:], strict=False):  # no jumps between frames
         assert np.linalg.norm(a.cam_from_world[:3, 3] - b.cam_from_world[:3, 3]) < 5
-
-
-# ------------------------------------------------------------------ batch --
-
-
-def test_make_all_builds_the_per_scene_table_and_marks_a_failure(
-    trained_work, tiny_scene_dir, tmp_path
-):
-    """Two tiny scenes (seed 0 with its trained chain copied, seed 1 trained
-    here) and a broken one, through `make -j2 all`."""
-    from ptovs.synthetic import generate_scene
-
-    if shutil.which("make") is None:
-        pytest.fail("GNU make is needed for the batch target")
-    data, work = tmp_path / "data", tmp_path / "work"
-    name = tiny_scene_dir.name
-    shutil.copytree(tiny_scene_dir, data / name)
-    shutil.copytree(tiny_scene_dir.parent / "label" / name, data / "label" / name)
-    shutil.copytree(trained_work[0] / name, work / name,
-                    ignore=shutil.ignore_patterns("*.lock"))  # fmt: skip
-    generate_scene(data, preset="tiny", seed=1, progress=False)
-    (data / "broken" / "dense").mkdir(parents=True)  # no model: reconstruct fails
-    config = tmp_path / "test.toml"
-    config.write_text("[reconstruct]\niterations = 300\nmask_warmup = 100\n")
-    cmd = ["make", "-s", "-j2", "all", f"DATA={data}", f"WORK={work}", f"CONFIG={config}",
-           "SETUP=", f"PTOVS_BIN={sys.executable} -m ptovs"]  # fmt: skip
-    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
-    assert proc.returncode != 0, proc.stdout  # --strict: a scene has no numbers
-    table = (work / "table.md").read_text()
-    assert table in proc.stdout
-    head = next(line for line in table.splitlines() if line.startswith("| variant"))
-    assert head == "| variant | broken | tiny_s0 | tiny_s1 | mean |"
-    row = next(line for line in table.splitlines() if line.startswith("| male"))
-    cells = [c.strip() for c in row.strip("|").split("|")]
-    assert cells[1] == "failed" and cells[4].endswith("*")
-    for cell in cells[2:4]:
-        values = [float(x) for x in cell.split(" / ")]
-        assert len(values) == 3 and all(0.0 <= v <= 1.0 for v in values)
-    assert (work / "broken" / "FAILED").is_file()
-    assert "broken: failed" in table
-    assert "reconstruct failed" in (work / "broken" / "FAILED").read_text()
