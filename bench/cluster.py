@@ -1,0 +1,183 @@
+"""Benchmark the batch drivers (issue 26 targets): `make -j2 all` against the
+Snakemake workflow, on one machine and through a single-node Slurm.
+
+python bench/cluster.py --parts make local slurm --work work/cluster
+python bench/cluster.py --parts stages --work work/cluster     # per-stage figures
+
+Parts (each from an empty work folder, default config, one after the other):
+  make    7 tiny synthetic scenes (seeds 0-6) through `make -j2 all`: wall time,
+          the per-scene table
+  local   the same through `snakemake --profile workflow/profiles/local --cores 2`
+  slurm   the same through the slurm profile on a single-node Slurm started here
+          (workflow/slurm-local/start.sh; root; 2 CPUs, one thread a job): wall
+          time, the table, and per job from sacct: rule, scene, state, elapsed,
+          requested memory, MaxRSS of the job's step
+  stages  the `bench` preset's seed 0 through the local profile with 2 cores:
+          each stage's wall time and peak RSS (the workflow's benchmark files),
+          the figures src/ptovs/pipeline.py's RESOURCES and the 16-node estimate
+          in docs/benchmarks.md come from
+Results: <work>/cluster.json (a part's entry is replaced when it is rerun).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import ROOT, bench_scene, run_ptovs  # noqa: E402  (same folder)
+
+SNAKEFILE = ROOT / "workflow" / "Snakefile"
+PROFILES = ROOT / "workflow" / "profiles"
+
+
+def tiny_data(root: Path, n: int = 7) -> Path:
+    data = root / "tiny_data"
+    for seed in range(n):
+        if not (data / f"tiny_s{seed}" / "dense").is_dir():
+            run_ptovs(
+                root, "synth-scene", str(data), "--preset", "tiny", "--seed", str(seed)
+            )
+    return data
+
+
+def timed(cmd: list[str], cwd: Path, env: dict | None = None) -> tuple[float, int, str]:
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    return wall, proc.returncode, proc.stdout[-4000:] + proc.stderr[-4000:]
+
+
+def fresh(path: Path) -> Path:
+    shutil.rmtree(path, ignore_errors=True)
+    path.mkdir(parents=True)
+    return path
+
+
+def make_part(root: Path) -> dict:
+    data, work = tiny_data(root), fresh(root / "make_work")
+    cmd = ["make", "-s", "-j2", "all", f"DATA={data}", f"WORK={work}", "SETUP=",
+           f"PTOVS_BIN={sys.executable} -m ptovs"]  # fmt: skip
+    wall, rc, out = timed(cmd, ROOT)
+    return {"wall_s": round(wall, 1), "exit": rc, "table": (work / "table.md").read_text(),
+            "tail": out if rc else ""}  # fmt: skip
+
+
+def snakemake(profile: str, data: Path, work: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "snakemake", "-s", str(SNAKEFILE),
+            "--profile", str(PROFILES / profile), *extra,
+            "--config", f"data={data}", f"work={work}"]  # fmt: skip
+
+
+def local_part(root: Path) -> dict:
+    data, work = tiny_data(root), fresh(root / "local_work")
+    wall, rc, out = timed(
+        snakemake("local", data, work, "--cores", "2"), fresh(root / "local_run")
+    )
+    return {"wall_s": round(wall, 1), "exit": rc, "table": (work / "table.md").read_text(),
+            "tail": out if rc else ""}  # fmt: skip
+
+
+def sacct(env: dict) -> list[dict]:
+    fields = "JobID,Comment%80,Partition,State,Elapsed,ReqMem,AllocCPUS,MaxRSS"
+    out = subprocess.run(["sacct", "-a", "-P", "--units=M", "-o", fields], env=env,
+                         capture_output=True, text=True, check=True).stdout  # fmt: skip
+    names = fields.replace("%80", "").split(",")
+    rows = [
+        dict(zip(names, line.split("|"), strict=True)) for line in out.splitlines()[1:]
+    ]
+    steps = {r["JobID"].split(".")[0]: r for r in rows if r["JobID"].endswith(".0")}
+    jobs = []
+    for r in rows:
+        if "." in r["JobID"]:
+            continue
+        rule, _, scene = r["Comment"].removeprefix("rule_").partition("_wildcards_")
+        step = steps.get(r["JobID"], {})
+        jobs.append({"job": r["JobID"], "rule": rule, "scene": scene, "state": r["State"],
+                     "elapsed": r["Elapsed"], "req_mem": r["ReqMem"], "cpus": r["AllocCPUS"],
+                     "max_rss": step.get("MaxRSS", "")})  # fmt: skip
+    return jobs
+
+
+def slurm_part(root: Path) -> dict:
+    data, work = tiny_data(root), fresh(root / "slurm_work")
+    cluster = Path("/tmp/ptovs-bench-slurm")
+    start = subprocess.run(["bash", str(ROOT / "workflow/slurm-local/start.sh"), str(cluster)],
+                           capture_output=True, text=True)  # fmt: skip
+    if start.returncode:
+        return {"error": start.stderr[-4000:]}
+    env = {**os.environ, "SLURM_CONF": str(cluster / "slurm.conf"),
+           "PATH": f"{cluster / 'bin'}:{os.environ['PATH']}"}  # fmt: skip
+    try:
+        cmd = snakemake("slurm", data, work, "--default-resources", "slurm_partition=cpu",
+                        "slurm_account=ptovs", "--max-threads", "1",
+                        "--slurm-init-seconds-before-status-checks", "5")  # fmt: skip
+        wall, rc, out = timed(cmd, fresh(root / "slurm_run"), env)
+        jobs = sacct(env)
+    finally:
+        subprocess.run(["bash", str(ROOT / "workflow/slurm-local/stop.sh"), str(cluster)],
+                       capture_output=True)  # fmt: skip
+    return {"wall_s": round(wall, 1), "exit": rc, "table": (work / "table.md").read_text(),
+            "jobs": jobs, "tail": out if rc else ""}  # fmt: skip
+
+
+def stages_part(root: Path) -> dict:
+    """bench seed 0, one scene, 2 cores: per-stage wall and peak RSS."""
+    scene = bench_scene(root / "bench_data", 0)
+    work = fresh(root / "stages_work")
+    wall, rc, out = timed(
+        snakemake("local", scene.parent, work, "--cores", "2")
+        + [f"scenes={scene.name}"],
+        fresh(root / "stages_run"),
+    )
+    stages = {}
+    for tsv in sorted((work / scene.name / "bench").glob("*.tsv")):
+        with tsv.open() as f:
+            row = next(csv.DictReader(f, delimiter="\t"))
+        stages[tsv.stem] = {
+            "wall_s": float(row["s"]),
+            "max_rss_mb": float(row["max_rss"]),
+        }
+    return {"wall_s": round(wall, 1), "exit": rc, "scene": scene.name, "stages": stages,
+            "tail": out if rc else ""}  # fmt: skip
+
+
+PARTS = {
+    "make": make_part,
+    "local": local_part,
+    "slurm": slurm_part,
+    "stages": stages_part,
+}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument(
+        "--parts", nargs="+", choices=list(PARTS), default=["make", "local"]
+    )
+    ap.add_argument("--work", type=Path, default=ROOT / "work" / "cluster")
+    args = ap.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    out = args.work / "cluster.json"
+    results = json.loads(out.read_text()) if out.exists() else {}
+    for part in args.parts:
+        res = PARTS[part](args.work.resolve())
+        res["when"] = time.strftime("%Y-%m-%d %H:%M")
+        results[part] = res
+        out.write_text(json.dumps(results, indent=1))
+        print(
+            part,
+            json.dumps({k: v for k, v in res.items() if k != "jobs"}, indent=1),
+            flush=True,
+        )
+
+
+if __name__ == "__main__":
+    main()
