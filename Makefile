@@ -5,6 +5,7 @@
 #   make bench-accuracy  the accuracy instrument: 18 seeds, every variant, CIs (~90 min)
 #   make -j3 all       every scene under DATA in parallel, stages in order, then the
 #                      per-scene table (a failing scene is marked, the others go on)
+#   make cluster       the same through Snakemake: PROFILE=local (default) or slurm
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
@@ -29,7 +30,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(WORK) --config $(CONFIG)
 # Gaussians, 44.9 %, at relevancy score 0.173)
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo view test test-slurm lint format bench bench-accuracy all scenes table status clean-work $(SCENES)
+.PHONY: setup demo view test test-slurm lint format bench bench-accuracy all cluster scenes table status clean-work $(SCENES)
 
 setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml
@@ -82,6 +83,7 @@ bench: setup
 	$(BIN)/python bench/style_instrument.py --preset bench --seeds 12 --out $(WORK)/bench/style_instrument.json
 	$(BIN)/python bench/style_instrument.py --preset tiny --seeds 30 --out $(WORK)/bench/style_instrument.json
 	$(BIN)/python bench/apps.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
+	$(BIN)/python bench/cluster.py --parts make local slurm stages --work $(WORK)/cluster
 	$(BIN)/python bench/busy.py --work $(WORK)/busy
 	$(BIN)/python bench/busy.py --work $(WORK)/busy --competitors 2
 	$(BIN)/python bench/omp_steps.py --data $(DATA) --work $(WORK)/omp_steps
@@ -133,6 +135,17 @@ $(SCENES): $(SETUP)
 	  { echo "$$s failed; see $(WORK)/$@/run.log" | tee $(WORK)/$@/FAILED; exit 1; }; \
 	done
 	@echo "$@: every stage done"
+
+# the same batch through Snakemake (extra [cluster]; workflow/Snakefile): PROFILE=local
+# on this machine's cores, PROFILE=slurm on a cluster (partition and account: edit
+# workflow/profiles/slurm/config.yaml, or SMK_ARGS="--default-resources
+# slurm_partition=P slurm_account=A"). Same per-scene table as `all`, in WORK/table.md
+PROFILE  ?= local
+SMK_ARGS ?=
+cluster: $(SETUP)
+	$(BIN)/python -m snakemake -s $(ROOT)/workflow/Snakefile --profile $(ROOT)/workflow/profiles/$(PROFILE) \
+	  $(if $(filter local,$(PROFILE)),--cores $(NPROC)) $(SMK_ARGS) \
+	  --config data=$(DATA) work=$(WORK) config=$(CONFIG)
 
 table: $(SETUP)
 	@$(PTOVS) table --data $(DATA) --out $(WORK)/table.md
