@@ -14,8 +14,9 @@ Parts (each from an empty work folder, default config, one after the other):
           requested memory, MaxRSS of the job's step
   stages  the `bench` preset's seed 0 through the local profile with 2 cores:
           each stage's wall time and peak RSS (the workflow's benchmark files),
-          the figures src/ptovs/pipeline.py's RESOURCES and the 16-node estimate
-          in docs/benchmarks.md come from
+          the figures src/ptovs/pipeline.py's RESOURCES come from
+  paper   no run: the seven PT-OVS scenes on a 16-node cluster from `stages` and
+          bench/extract_gpu.py's per-photo backend cost (the model is in paper_part)
 Results: <work>/cluster.json (a part's entry is replaced when it is rerun).
 """
 
@@ -149,11 +150,58 @@ def stages_part(root: Path) -> dict:
             "tail": out if rc else ""}  # fmt: skip
 
 
+# The seven PT-OVS scenes: train photos (PAPER_SPEC.md §1.1)
+PT_OVS = {"brandenburg": 763, "trevi": 1689, "buckingham": 1379, "notre": 2934,
+          "pantheon": 1308, "taj": 1238, "temple": 859}  # fmt: skip
+BENCH_VIEWS, BENCH_MP = 80, 320 * 240 / 1e6  # the `bench` preset's train photos
+PT_MP = 700 * 470 / 1e6  # a PhotoTourism photo at the authors' r = 2
+STEP_EXPONENT = 0.87  # reconstruct s/step ~ MP^0.87 (bench 0.12 s at 0.077 MP, real 0.59 s at 0.48 MP)
+# one photo through SAM ViT-H (32x32 points, one crop layer) + OpenCLIP ViT-B-16 on 256
+# crops, random weights (bench/extract_gpu.py): H200 2.63 + 0.06 s; 16 CPU cores 182 s
+SAM_CLIP_GPU_S, SAM_CPU_S, IMAGES_PER_VIEW = 2.69, 182.0, 5
+
+
+def paper_part(root: Path) -> dict:
+    """The seven PT-OVS scenes on a 16-node cluster, on paper, from the `stages`
+    part's per-stage wall times on bench (2 threads) and the backends' per-photo
+    cost on a GPU (bench/extract_gpu.py). Each scene's chain is sequential; with
+    7 scenes on 16 nodes every chain has its own node, so the wall time is the
+    longest chain (the critical path) plus the queue's turn-around per job."""
+    stages = json.loads((root / "cluster.json").read_text())["stages"]["stages"]
+    rho = PT_MP / BENCH_MP
+    w = {s: stages[s]["wall_s"] for s in stages}
+
+    def chain(n: int) -> dict[str, float]:
+        per_view = n / BENCH_VIEWS
+        return {
+            # steps fixed, each ~MP^0.87; then one render a photo (the residual masks)
+            "reconstruct": w["reconstruct"] * rho**STEP_EXPONENT
+            + per_view * w["render-appearances"] * rho / 4,
+            "render-appearances": w["render-appearances"] * per_view * rho,
+            "extract-features (GPU)": n * IMAGES_PER_VIEW * SAM_CLIP_GPU_S,
+            "uncertainty": w["uncertainty"] * per_view * rho,
+            "train-ae": w["train-ae"] * per_view,  # segments, not pixels
+            "train-male": w["train-male"] * per_view * rho,
+            "query": w["query"] * rho * 3,  # 8-27 labelled photos against bench's few
+            "evaluate": w["evaluate"] * 3,
+        }
+
+    per_scene = {name: chain(n) for name, n in PT_OVS.items()}
+    totals = {name: sum(c.values()) for name, c in per_scene.items()}
+    worst = max(totals, key=totals.get)
+    cpu_extract = {name: n * IMAGES_PER_VIEW * SAM_CPU_S for name, n in PT_OVS.items()}
+    queue_s = 60 * len(w)  # a minute of queue and status polling per job
+    return {"rho": round(rho, 2), "per_scene_s": per_scene, "totals_s": totals,
+            "critical_path": worst, "wall_s": totals[worst] + queue_s,
+            "extract_on_cpu_s": cpu_extract, "node_hours": sum(totals.values()) / 3600}  # fmt: skip
+
+
 PARTS = {
     "make": make_part,
     "local": local_part,
     "slurm": slurm_part,
     "stages": stages_part,
+    "paper": paper_part,
 }
 
 

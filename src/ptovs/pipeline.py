@@ -71,17 +71,22 @@ class Resources:
         return 256 * math.ceil(1.5 * self.peak_mb / 256)
 
 
-# Peaks: the `bench` preset (80 photos of ~320×240, ~25k Gaussians), one process a
-# stage, measured through the workflow's own benchmark files on 2026-11-26.
+# peak_mb: the largest peak RSS measured for the stage's process (MB): the `bench`
+# preset (80 photos of 320x240, ~25k Gaussians) through the workflow's benchmark
+# files on 2026-11-26 (bench/cluster.py --parts stages), the tiny scenes' jobs in
+# sacct (query), and earlier bench and `scale` (3,000 photos) runs in
+# docs/benchmarks.md (reconstruct, render-appearances, extract-features,
+# uncertainty, train-ae). train-male is the default recipe (the lift); the
+# optimising variants peaked at 4.8 GB on bench.
 RESOURCES: dict[str, Resources] = {
-    "reconstruct": Resources(threads=8, peak_mb=1600, minutes=60),
-    "render-appearances": Resources(threads=4, peak_mb=600, minutes=20),
-    "extract-features": Resources(threads=4, peak_mb=600, minutes=30, device="device"),
-    "uncertainty": Resources(threads=4, peak_mb=800, minutes=20),
-    "train-ae": Resources(threads=4, peak_mb=700, minutes=30),
-    "train-male": Resources(threads=8, peak_mb=5000, minutes=30),
-    "query": Resources(threads=4, peak_mb=1000, minutes=20, device="device"),
-    "evaluate": Resources(threads=1, peak_mb=400, minutes=10),
+    "reconstruct": Resources(threads=8, peak_mb=1526, minutes=60),
+    "render-appearances": Resources(threads=4, peak_mb=516, minutes=20),
+    "extract-features": Resources(threads=4, peak_mb=571, minutes=30, device="device"),
+    "uncertainty": Resources(threads=4, peak_mb=715, minutes=20),
+    "train-ae": Resources(threads=4, peak_mb=562, minutes=30),
+    "train-male": Resources(threads=8, peak_mb=3484, minutes=30),
+    "query": Resources(threads=4, peak_mb=760, minutes=20, device="device"),
+    "evaluate": Resources(threads=1, peak_mb=356, minutes=10),
 }
 
 
