@@ -19,7 +19,6 @@ from ptovs.field import relevancy as rel
 from ptovs.field.ply import read_ply
 
 
-
 @pytest.fixture(scope="module")
 def app_work(tmp_path_factory, trained_work):
     return copy_work(trained_work[0], tmp_path_factory.mktemp("apps") / "work")
