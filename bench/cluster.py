@@ -49,11 +49,16 @@ def tiny_data(root: Path, n: int = 7) -> Path:
     return data
 
 
-def timed(cmd: list[str], cwd: Path, env: dict | None = None) -> tuple[float, int, str]:
+def timed(cmd: list[str], cwd: Path, work: Path, env: dict | None = None) -> dict:
+    """Run a batch driver: its wall time, exit code, the table it left in `work` and,
+    when it failed, the tail of its output."""
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
-    return wall, proc.returncode, proc.stdout[-4000:] + proc.stderr[-4000:]
+    table = work / "table.md"
+    return {"wall_s": round(wall, 1), "exit": proc.returncode,
+            "table": table.read_text() if table.exists() else "",
+            "tail": proc.stdout[-4000:] + proc.stderr[-4000:] if proc.returncode else ""}  # fmt: skip
 
 
 def fresh(path: Path) -> Path:
@@ -66,9 +71,7 @@ def make_part(root: Path) -> dict:
     data, work = tiny_data(root), fresh(root / "make_work")
     cmd = ["make", "-s", "-j2", "all", f"DATA={data}", f"WORK={work}", "SETUP=",
            f"PTOVS_BIN={sys.executable} -m ptovs"]  # fmt: skip
-    wall, rc, out = timed(cmd, ROOT)
-    return {"wall_s": round(wall, 1), "exit": rc, "table": (work / "table.md").read_text(),
-            "tail": out if rc else ""}  # fmt: skip
+    return timed(cmd, ROOT, work)
 
 
 def snakemake(profile: str, data: Path, work: Path, *extra: str) -> list[str]:
@@ -79,11 +82,9 @@ def snakemake(profile: str, data: Path, work: Path, *extra: str) -> list[str]:
 
 def local_part(root: Path) -> dict:
     data, work = tiny_data(root), fresh(root / "local_work")
-    wall, rc, out = timed(
-        snakemake("local", data, work, "--cores", "2"), fresh(root / "local_run")
+    return timed(
+        snakemake("local", data, work, "--cores", "2"), fresh(root / "local_run"), work
     )
-    return {"wall_s": round(wall, 1), "exit": rc, "table": (work / "table.md").read_text(),
-            "tail": out if rc else ""}  # fmt: skip
 
 
 def sacct(env: dict) -> list[dict]:
@@ -120,23 +121,23 @@ def slurm_part(root: Path) -> dict:
         cmd = snakemake("slurm", data, work, "--default-resources", "slurm_partition=cpu",
                         "slurm_account=ptovs", "--max-threads", "1",
                         "--slurm-init-seconds-before-status-checks", "5")  # fmt: skip
-        wall, rc, out = timed(cmd, fresh(root / "slurm_run"), env)
-        jobs = sacct(env)
+        res = timed(cmd, fresh(root / "slurm_run"), work, env)
+        res["jobs"] = sacct(env)
     finally:
         subprocess.run(["bash", str(ROOT / "workflow/slurm-local/stop.sh"), str(cluster)],
                        capture_output=True)  # fmt: skip
-    return {"wall_s": round(wall, 1), "exit": rc, "table": (work / "table.md").read_text(),
-            "jobs": jobs, "tail": out if rc else ""}  # fmt: skip
+    return res
 
 
 def stages_part(root: Path) -> dict:
     """bench seed 0, one scene, 2 cores: per-stage wall and peak RSS."""
     scene = bench_scene(root / "bench_data", 0)
     work = fresh(root / "stages_work")
-    wall, rc, out = timed(
+    res = timed(
         snakemake("local", scene.parent, work, "--cores", "2")
         + [f"scenes={scene.name}"],
         fresh(root / "stages_run"),
+        work,
     )
     stages = {}
     for tsv in sorted((work / scene.name / "bench").glob("*.tsv")):
@@ -146,8 +147,7 @@ def stages_part(root: Path) -> dict:
             "wall_s": float(row["s"]),
             "max_rss_mb": float(row["max_rss"]),
         }
-    return {"wall_s": round(wall, 1), "exit": rc, "scene": scene.name, "stages": stages,
-            "tail": out if rc else ""}  # fmt: skip
+    return {**res, "scene": scene.name, "stages": stages}
 
 
 # The seven PT-OVS scenes: train photos (PAPER_SPEC.md §1.1)
