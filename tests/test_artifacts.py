@@ -169,7 +169,12 @@ def test_partial_write_resumes_and_discards_damage(tmp_path: Path):
     w.write_view("v2", {"x": np.ones(3)})
     parts = store.path("sc", "st", key).with_suffix(".parts")
     # an interrupted shard write leaves a .tmp: ignored; a damaged shard: dropped
-    (parts / "v3.h5.tmp").write_bytes(b"half")
+    (parts / "v3.h5.tmp").write_bytes(b"half")  # the name before random names
+    (parts / ".v3.h5.0123456789ab.tmp").write_bytes(b"half")
+    stale_final = store.path("sc", "st", key).with_name(
+        f".{key[:12]}.h5.0123456789ab.tmp"
+    )  # an interrupted finish()
+    stale_final.write_bytes(b"half")
     (parts / "v4.h5").write_bytes(b"broken")
     with h5py.File(parts / "v5.h5", "w") as h5:  # written by a different key
         h5.attrs["key"] = "other"
@@ -179,7 +184,74 @@ def test_partial_write_resumes_and_discards_damage(tmp_path: Path):
     w2 = store.writer("sc", "st", key, {})
     assert w2.done_views() == {"v1", "v2"}
     assert sorted(p.name for p in parts.iterdir()) == ["v1.h5", "v2.h5"]
+    assert not stale_final.exists()
     w2.write_view("v3", {"x": np.zeros(3)})
     art = w2.finish()
     assert art.names() == ["v1", "v2", "v3"]
     art.close()
+
+
+def test_store_writes_never_follow_a_planted_link(tmp_path: Path):
+    """Links planted at the old predictable temporary names (shard `<view>.h5.tmp`,
+    final `<key12>.h5.tmp`, checkpoint `last.pt.<pid>.tmp`, memo cache
+    `<cache>.<pid>.tmp`) and at the final names are never written through."""
+    import os
+
+    import torch
+
+    from ptovs.artifacts import Checkpoint, fingerprint_files
+
+    victim = tmp_path / "victim"
+    victim.write_bytes(b"precious")
+    store = Store(tmp_path / "work")
+    key = "56" * 32
+    final = store.path("sc", "st", key)
+    parts = final.with_suffix(".parts")
+    parts.mkdir(parents=True)
+    pid = os.getpid()
+    for link in (
+        parts / "v1.h5.tmp",
+        parts / "v2.h5",  # a final name: replaced (and as a damaged shard, dropped)
+        final.with_name(final.name + ".tmp"),
+        final.with_name(final.name + f".{pid}.tmp"),
+    ):
+        link.symlink_to(victim)
+    w = store.writer("sc", "st", key, {})
+    w.write_view("v1", {"x": np.ones(3)})
+    w.write_view("v2", {"x": np.zeros(3)})
+    art = w.finish()
+    assert art.names() == ["v1", "v2"] and not art.path.is_symlink()
+    art.close()
+    ck = Checkpoint(tmp_path / "x.ckpt", "k")
+    ck.folder.mkdir()
+    (ck.folder / f"last.pt.{pid}.tmp").symlink_to(victim)
+    ck.path.symlink_to(victim)
+    ck.save({"w": torch.ones(2)})
+    assert not ck.path.is_symlink() and torch.equal(ck.load()["w"], torch.ones(2))
+    photo = tmp_path / "p.jpg"
+    photo.write_bytes(b"jpeg")
+    cache = tmp_path / "cache.json"
+    cache.with_name(f"cache.json.{pid}.tmp").symlink_to(victim)
+    fingerprint_files([photo], tmp_path, cache)
+    assert str(photo) in cache.read_text()
+    assert victim.read_bytes() == b"precious"
+    left = [
+        p.name for p in tmp_path.rglob("*") if ".tmp" in p.name and not p.is_symlink()
+    ]
+    assert left == []  # no temporary file of ours is left behind
+
+
+def test_a_planted_link_at_a_lock_is_refused(tmp_path):
+    from ptovs.artifacts import Store
+    from ptovs.errors import InputError
+
+    store = Store(tmp_path / "work")
+    victim = tmp_path / "victim"
+    victim.write_text("keep")
+    lock = store.path("s", "stage", "k" * 64).with_suffix(".lock")
+    lock.parent.mkdir(parents=True)
+    lock.symlink_to(victim)
+    with pytest.raises(InputError, match="symbolic link"):
+        with store.lock("s", "stage", "k" * 64):
+            pass
+    assert victim.read_text() == "keep"

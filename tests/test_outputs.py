@@ -116,6 +116,148 @@ def test_a_truncated_video_is_not_moved_into_place(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["tour.mp4"]
 
 
+# ------------------------------------------- temporary files (issue: links) --
+
+
+def _victim(tmp_path: Path) -> Path:
+    victim = tmp_path / "outside" / "victim.txt"  # e.g. /etc/something, for root
+    victim.parent.mkdir()
+    victim.write_text("precious")
+    return victim
+
+
+def test_a_link_planted_at_the_old_temporary_name_is_not_followed(tmp_path):
+    from ptovs.artifacts import write_atomic
+
+    victim = _victim(tmp_path)
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    out, small = shared / "out.ply", shared / "record.json"
+    pid = os.getpid()
+    for name in (f".out.{pid}.tmp.ply", f"record.json.{pid}.tmp"):  # <= 2026-12
+        (shared / name).symlink_to(victim)
+    with output_file(out) as tmp:
+        tmp.write_bytes(b"ply data")
+    write_atomic(small, '{"a": 1}')
+    assert victim.read_text() == "precious"
+    assert out.read_bytes() == b"ply data" and small.read_text() == '{"a": 1}'
+    assert not out.is_symlink() and not small.is_symlink()
+    assert sorted(p.name for p in shared.iterdir()) == sorted(
+        [f".out.{pid}.tmp.ply", f"record.json.{pid}.tmp", "out.ply", "record.json"]
+    )  # the planted links are left alone, nothing else is left over
+
+
+def test_links_planted_at_every_name_tried_are_skipped(tmp_path, monkeypatch):
+    """Even a name the attacker guessed is created exclusively (O_EXCL): a link
+    there is never opened; the writer takes the next random name."""
+    from ptovs import atomic
+    from ptovs.artifacts import write_atomic
+
+    victim = _victim(tmp_path)
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    guessed = ["0" * 12, "1" * 12]
+    for token in guessed:  # every name the writers will try first, both patterns
+        for name in (f".out.{token}.tmp.ply", f".record.json.{token}.tmp"):
+            (shared / name).symlink_to(victim)
+    tokens = iter([*guessed, "a" * 12, *guessed, "b" * 12])
+    monkeypatch.setattr(atomic, "_token", lambda: next(tokens))
+    with output_file(shared / "out.ply") as tmp:
+        assert tmp.name == f".out.{'a' * 12}.tmp.ply"  # suffix kept (for OpenCV)
+        tmp.write_bytes(b"ply data")
+    write_atomic(shared / "record.json", "{}")
+    assert victim.read_text() == "precious"
+    assert (shared / "out.ply").read_bytes() == b"ply data"
+    assert (shared / "record.json").read_text() == "{}"
+    monkeypatch.setattr(atomic, "_token", lambda: guessed[0])  # all taken: an error
+    with pytest.raises(OutputError, match="out.ply"), output_file(shared / "out.ply"):
+        pass
+    assert victim.read_text() == "precious"
+    links = [p for p in shared.iterdir() if p.is_symlink()]
+    assert len(links) == 4 and all(p.resolve() == victim for p in links)
+
+
+def test_a_link_at_the_final_path_is_replaced_not_written_through(tmp_path):
+    from ptovs.artifacts import write_atomic
+
+    victim = _victim(tmp_path)
+    for i, write in enumerate((
+        lambda p: write_atomic(p, "new"),
+        lambda p: _write_through_output_file(p, b"new"),
+    )):  # fmt: skip
+        out = tmp_path / f"out{i}.txt"
+        out.symlink_to(victim)
+        write(out)
+        assert not out.is_symlink() and out.read_text() == "new"
+        assert victim.read_text() == "precious"
+
+
+def _write_through_output_file(path: Path, data: bytes) -> None:
+    with output_file(path) as tmp:
+        tmp.write_bytes(data)
+
+
+def test_writers_in_threads_never_collide(tmp_path):
+    from concurrent.futures import ThreadPoolExecutor
+
+    from ptovs.artifacts import write_atomic
+
+    def write(i: int) -> None:
+        body = f"{i}\n" * 5000
+        _write_through_output_file(tmp_path / "same.txt", body.encode())
+        _write_through_output_file(tmp_path / f"own{i % 4}.txt", body.encode())
+        write_atomic(tmp_path / "same.json", body)
+
+    with ThreadPoolExecutor(8) as pool:
+        list(pool.map(write, range(64)))  # re-raises any writer's error
+    for name in ("same.txt", "same.json", "own0.txt", "own3.txt"):
+        lines = (tmp_path / name).read_text().splitlines()
+        assert len(lines) == 5000 and len(set(lines)) == 1  # one whole write
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        ["same.txt", "same.json", "own0.txt", "own1.txt", "own2.txt", "own3.txt"]
+    )  # no temporary file left
+
+
+def test_an_interrupted_write_leaves_no_temporary_file(tmp_path):
+    from ptovs.artifacts import write_atomic
+    from ptovs.atomic import atomic_dir
+
+    with pytest.raises(KeyboardInterrupt), output_file(tmp_path / "a.ply") as tmp:
+        tmp.write_bytes(b"half")
+        raise KeyboardInterrupt  # Ctrl-C mid-write
+    (tmp_path / "dir").mkdir()  # os.replace cannot put a file over a folder
+    with pytest.raises(OSError):
+        write_atomic(tmp_path / "dir", "x")
+    with pytest.raises(RuntimeError), atomic_dir(tmp_path / "scene") as folder:
+        (folder / "images").mkdir()
+        raise RuntimeError("undistortion failed")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dir"]
+    with atomic_dir(tmp_path / "dir") as folder:  # replaces the old folder whole
+        (folder / "sparse").mkdir()
+    assert [p.name for p in (tmp_path / "dir").iterdir()] == ["sparse"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dir"]
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o077, 0o002])
+def test_outputs_get_the_usual_mode(tmp_path, umask):
+    """Temporary files are created 0666 less the umask (not mkstemp's 0600), so a
+    finished output is as readable as any file the user makes."""
+    from ptovs.artifacts import write_atomic
+    from ptovs.atomic import atomic_dir
+
+    old = os.umask(umask)
+    try:
+        _write_through_output_file(tmp_path / "a.ply", b"x")
+        write_atomic(tmp_path / "b.json", "{}")
+        with atomic_dir(tmp_path / "c") as folder:
+            (folder / "f").write_text("x")
+    finally:
+        os.umask(old)
+    assert (tmp_path / "a.ply").stat().st_mode & 0o777 == 0o666 & ~umask
+    assert (tmp_path / "b.json").stat().st_mode & 0o777 == 0o666 & ~umask
+    assert (tmp_path / "c").stat().st_mode & 0o777 == 0o777 & ~umask
+
+
 # --------------------------------------------------------------- the sweep --
 
 

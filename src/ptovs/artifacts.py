@@ -15,8 +15,11 @@ artifact recomputes them: a truncated or corrupted file is never used.
 Writing is crash-safe and resumable. Each view goes to its own shard file in
 `<key[:12]>.parts/` (written to a temporary name, fsynced, renamed), so a run
 killed after 2,000 of 3,000 views keeps 2,000 finished shards and the next run
-computes only the rest. `finish()` merges the shards into `<key[:12]>.h5.tmp`,
-fsyncs it and renames it into place: the final name appears only when complete.
+computes only the rest. `finish()` merges the shards into a temporary
+`.<key[:12]>.h5.<random>.tmp`, fsyncs it and renames it into place: the final
+name appears only when complete. Temporary names are unguessable and created
+exclusively (`ptovs.atomic`), so a link planted in the store is never written
+through.
 A per-key lock file serialises concurrent runs of the same stage.
 """
 
@@ -40,7 +43,9 @@ import h5py
 import numpy as np
 
 from ptovs import __version__
+from ptovs.atomic import atomic_file
 from ptovs.config import canonical_json
+from ptovs.errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -108,33 +113,16 @@ def _check_finite(name: str, arr: np.ndarray) -> None:
         )
 
 
-def _fsync_dir(path: Path) -> None:
-    with contextlib.suppress(OSError):
-        fd = os.open(path, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
-def _fsync_file(path: Path) -> None:
-    with open(path, "rb+") as fh:
-        os.fsync(fh.fileno())
-
-
 def write_atomic(path: Path, data: bytes | str) -> None:
     """Write a small file so that a reader never sees it half written."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-    try:
+    # a failed write (full disk, a folder in the way) leaves nothing behind
+    with atomic_file(path, keep_suffix=False) as tmp:
         if isinstance(data, str):
             tmp.write_text(data)
         else:
             tmp.write_bytes(data)
-        os.replace(tmp, path)
-    finally:  # a failed write (full disk, a folder in the way) leaves nothing behind
-        tmp.unlink(missing_ok=True)
 
 
 def _safe_name(name: str) -> str:
@@ -379,7 +367,11 @@ class ArtifactWriter:
             else:
                 log.warning("discarding damaged shard %s", shard)
                 shard.unlink(missing_ok=True)
-        for tmp in self.parts.glob("*.tmp"):  # a write that was interrupted
+        # writes that were interrupted: shards' `.<view>.h5.<random>.tmp` (`<view>.h5.tmp`
+        # before), finish()'s `.<key12>.h5.<random>.tmp` (we hold the lock)
+        for tmp in self.parts.glob("*.tmp"):
+            tmp.unlink(missing_ok=True)
+        for tmp in self.final.parent.glob(f".{self.final.name}.*.tmp"):
             tmp.unlink(missing_ok=True)
         return done
 
@@ -396,22 +388,22 @@ class ArtifactWriter:
         self._write_shard(ROOT, datasets)
 
     def _write_shard(self, name: str, datasets: Mapping[str, Any]) -> None:
-        shard = self._shard(name)
-        tmp = shard.with_name(shard.name + ".tmp")
-        with h5py.File(tmp, "w") as h5:
+        with (
+            atomic_file(self._shard(name), keep_suffix=False, durable=True) as tmp,
+            h5py.File(tmp, "w") as h5,
+        ):
             h5.attrs["key"] = self.attrs["key"]
             _write_group(h5, datasets)
             h5.attrs["complete"] = True
-        _fsync_file(tmp)
-        os.replace(tmp, shard)
-        _fsync_dir(self.parts)
         self._done.add(name)
 
     def finish(self, extra_attrs: Mapping[str, Any] | None = None) -> Artifact:
         """Merge all shards into the final file, atomically; return it verified."""
-        tmp = self.final.with_name(self.final.name + ".tmp")
         records = []
-        with h5py.File(tmp, "w") as out:
+        with (
+            atomic_file(self.final, keep_suffix=False, durable=True) as tmp,
+            h5py.File(tmp, "w") as out,
+        ):
             for name in sorted(self._done):
                 src_path = self._shard(name)
                 dst = (
@@ -435,9 +427,6 @@ class ArtifactWriter:
                 # str subclasses (torch's TorchVersion) would become numpy '<U' arrays
                 out.attrs[k] = str(v) if isinstance(v, str) else v
             out.attrs["complete"] = True
-        _fsync_file(tmp)
-        os.replace(tmp, self.final)
-        _fsync_dir(self.final.parent)
         shutil.rmtree(self.parts, ignore_errors=True)
         return Artifact(self.final)
 
@@ -475,11 +464,8 @@ class Checkpoint:
         import torch
 
         self.folder.mkdir(parents=True, exist_ok=True)
-        tmp = self.path.with_name(self.NAME + f".{os.getpid()}.tmp")
-        torch.save({"key": self.key, "state": dict(state)}, tmp)
-        _fsync_file(tmp)
-        os.replace(tmp, self.path)
-        _fsync_dir(self.folder)
+        with atomic_file(self.path, keep_suffix=False, durable=True) as tmp:
+            torch.save({"key": self.key, "state": dict(state)}, tmp)
 
     def load(self) -> dict[str, Any] | None:
         import pickle
@@ -588,7 +574,18 @@ class Store:
         """Exclusive lock for one (scene, stage, key); waits for another holder."""
         path = self.path(scene, stage, key).with_suffix(".lock")
         path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "a") as fh:
+        # O_NOFOLLOW: a link planted at the lock's name is refused, never followed
+        flags = os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC
+        try:
+            fd = os.open(path, flags, 0o666)
+        except OSError as exc:
+            if path.is_symlink():
+                raise InputError(
+                    f"{path} is a symbolic link; ptovs never follows one in its work "
+                    "folder. Remove it (and check who can write there)"
+                ) from exc
+            raise
+        with os.fdopen(fd, "r+") as fh:
             try:
                 fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
@@ -646,7 +643,6 @@ def fingerprint_files(files: Iterable[Path], root: Path, cache: Path | None) -> 
         records.append(f"{rel}:{digest}")
     if cache is not None and changed:
         cache.parent.mkdir(parents=True, exist_ok=True)
-        tmp = cache.with_name(cache.name + f".{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(memo))
-        os.replace(tmp, cache)
+        with atomic_file(cache, keep_suffix=False) as tmp:
+            tmp.write_text(json.dumps(memo))
     return hashlib.sha256("\n".join(records).encode()).hexdigest()

@@ -1,6 +1,7 @@
 """One path for every file a command writes where the user said (PLY, video, PNG,
-JSON, Markdown): checked before any work, written to a temporary sibling,
-verified, and only then renamed into place.
+JSON, Markdown): checked before any work, written to a temporary sibling
+(`ptovs.atomic`: an unguessable name, created exclusively), verified, and only
+then renamed into place.
 
     paths = check_outputs({"--out": out, "--rest": rest, "record": out.with_suffix(".json")},
                           need_bytes=est)          # before the chain runs
@@ -21,6 +22,7 @@ from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 
+from ptovs.atomic import atomic_file
 from ptovs.errors import InputError
 
 
@@ -134,36 +136,28 @@ def describe_os_error(exc: OSError, path: Path | str | None = None) -> str:
     return f"{name}: {exc.strerror or exc}"
 
 
-def temp_path(path: Path) -> Path:
-    """The temporary sibling `output_file` writes: hidden, same suffix (writers such
-    as OpenCV pick the format by it), unique per process."""
-    return path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
-
-
 @contextmanager
 def output_file(
     path: Path, verify: Callable[[Path], None] | None = None
 ) -> Iterator[Path]:
-    """Yield a temporary path beside `path`; when the block ends, check the file is
-    there (and `verify(tmp)`, which raises on a bad file), then rename it into
-    place. On any failure the temporary file is removed and the error names
-    `path`; OSErrors become OutputErrors."""
+    """Yield a new, empty temporary file beside `path` (`ptovs.atomic.atomic_file`:
+    unguessable hidden name, created exclusively, same suffix); when the block
+    ends, check something was written (and `verify(tmp)`, which raises on a bad
+    file), then rename it into place. On any failure the temporary file is removed
+    and the error names `path`; OSErrors become OutputErrors."""
     path = Path(path)
-    tmp = temp_path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        yield tmp
-        if not tmp.is_file() or tmp.stat().st_size == 0:
-            raise OutputError(f"nothing was written to {path} (is the disk full?)")
-        if verify is not None:
-            verify(tmp)
-        os.replace(tmp, path)
+        with atomic_file(path) as tmp:
+            yield tmp
+            if not tmp.is_file() or tmp.stat().st_size == 0:
+                raise OutputError(f"nothing was written to {path} (is the disk full?)")
+            if verify is not None:
+                verify(tmp)
     except OSError as exc:
         raise OutputError(
             f"cannot write {path}: {describe_os_error(exc, path)}"
         ) from exc
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def write_text_output(path: Path, text: str) -> None:
@@ -178,6 +172,5 @@ __all__ = [
     "check_outputs",
     "describe_os_error",
     "output_file",
-    "temp_path",
     "write_text_output",
 ]

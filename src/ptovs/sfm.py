@@ -61,6 +61,7 @@ import cv2
 import numpy as np
 
 from ptovs.artifacts import Store, json_dataset
+from ptovs.atomic import atomic_dir
 from ptovs.errors import InputError, MissingInputError
 from ptovs.scene import jpeg_truncated
 
@@ -602,24 +603,23 @@ def _materialise(
 ) -> None:
     import pycolmap
 
-    tmp = out.with_name(out.name + f".{os.getpid()}.tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    pycolmap.undistort_images(str(tmp), str(model_dir), str(staged))
-    rec = pycolmap.Reconstruction(str(tmp / "sparse"))
-    names = sorted(rec.images[i].name for i in rec.reg_image_ids())
-    test = _split_names(names, fraction)
-    with open(tmp / f"{scene}.tsv", "w") as fh:
-        fh.write("filename\tid\tsplit\tdataset\n")
-        for i, n in enumerate(names):
-            fh.write(f"{n}\t{i}\t{'test' if n in test else 'train'}\t{scene}\n")
-    for extra in ("stereo", "run-colmap-geometric.sh", "run-colmap-photometric.sh"):
-        p = tmp / extra
-        if p.is_dir():
-            shutil.rmtree(p)
-        elif p.exists():
-            p.unlink()
-    shutil.rmtree(out, ignore_errors=True)
-    os.replace(tmp, out)
+    for stale in out.parent.glob(f".{out.name}.*.tmp"):  # a killed run's (we hold
+        shutil.rmtree(stale, ignore_errors=True)  # the store lock)
+    with atomic_dir(out) as tmp:  # replaces `out` only once complete
+        pycolmap.undistort_images(str(tmp), str(model_dir), str(staged))
+        rec = pycolmap.Reconstruction(str(tmp / "sparse"))
+        names = sorted(rec.images[i].name for i in rec.reg_image_ids())
+        test = _split_names(names, fraction)
+        with open(tmp / f"{scene}.tsv", "w") as fh:
+            fh.write("filename\tid\tsplit\tdataset\n")
+            for i, n in enumerate(names):
+                fh.write(f"{n}\t{i}\t{'test' if n in test else 'train'}\t{scene}\n")
+        for extra in ("stereo", "run-colmap-geometric.sh", "run-colmap-photometric.sh"):
+            p = tmp / extra
+            if p.is_dir():
+                shutil.rmtree(p)
+            elif p.exists():
+                p.unlink()
 
 
 def _photos_key(

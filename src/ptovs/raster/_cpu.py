@@ -35,6 +35,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from ptovs.atomic import atomic_file  # standard library only, below every room
 from ptovs.raster import _common
 from ptovs.raster._common import FOV_MARGIN, Camera, Gaussians, Isect, Projected
 
@@ -164,9 +165,8 @@ def _build(cflags: list[str], ldflags: list[str]) -> ctypes.CDLL:
         # A library left half-written by a killed build looks up to date to ninja.
         so_path.unlink(missing_ok=True)
         lib = compile_and_open()
-    tmp = marker.with_name(f"ok.{os.getpid()}.tmp")
-    tmp.write_text(name + "\n")
-    os.replace(tmp, marker)  # atomic: other processes never see a half-built library
+    with atomic_file(marker) as tmp:  # other processes never see a half-built library
+        tmp.write_text(name + "\n")
     return lib
 
 
