@@ -95,9 +95,15 @@ def main() -> None:
     cmd += ["view", "--data", str(args.data), "--port", str(port)]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)  # fmt: skip
-    url = f"http://127.0.0.1:{port}/"
     row: dict = {"scene": args.data.name}
     try:
+        # the URL carries the run's token: read it from the command's first line
+        line = ""
+        while not line.startswith("view "):
+            line = proc.stdout.readline()
+            if not line and proc.poll() is not None:
+                sys.exit(f"ptovs view ended: {proc.stdout.read()[-2000:]}")
+        url = line.split()[2]
         while True:
             if proc.poll() is not None:
                 sys.exit(f"ptovs view ended: {proc.stdout.read()[-2000:]}")

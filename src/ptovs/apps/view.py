@@ -11,16 +11,22 @@ to the nearest photo's camera, to export the selection as a 3DGS PLY (as `select
 writes it) and to play the `roam` path.
 
 `ViewSession` is everything but the page (load once, answer queries, bake, export),
-so it can be used and tested without a browser; `serve` puts it behind viser.
+shared by every browser; `Panel` is one browser's controls, scene and choices;
+`Page` puts them behind viser, with `ptovs.apps.view_guard` in front (the token in
+the printed URL, Host and Origin checks, only viser's own files, checked messages).
+Every client input is data: validated, capped, never markup.
 """
 
 from __future__ import annotations
 
+import functools
 import re
 import signal
 import socket
+import sys
 import threading
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,6 +35,7 @@ import numpy as np
 import torch
 
 from ptovs.apps import close_inputs
+from ptovs.apps.view_guard import MAX_CLIENTS, is_loopback
 from ptovs.errors import InputError
 from ptovs.field.model import SH_C0
 from ptovs.raster import Camera
@@ -37,6 +44,37 @@ from ptovs.stage import RunContext, chain_options
 HIGHLIGHT = (1.0, 0.0, 1.0)  # selected Gaussians: magenta, found by the browser test
 NEUTRAL = "neutral (mean of the photos)"
 SKY_POINTS = 20000  # the sky dome: a Fibonacci sphere of points coloured by f_sky
+MAX_PHRASE = 200  # characters of a phrase
+ANSWERS = 64  # phrase answers kept (least recently used dropped)
+EXTRA_PHRASES = 16  # phrases the querier holds beyond its own before it forgets them
+MAX_EXPORTS = 20  # PLYs one browser may write
+MAX_EXPORTS_TOTAL = 200  # PLYs one server may write
+READY = "Type a phrase and press Highlight."
+
+
+def plain(text: str) -> str:
+    """`text` for the page's markdown as plain characters: everything but ASCII
+    letters, digits and spaces becomes a character reference, so nothing a client
+    typed can form markup or an MDX expression."""
+    return "".join(
+        c if (c.isascii() and c.isalnum()) or c == " " else f"&#{ord(c)};"
+        for c in str(text)
+    )
+
+
+def clean_phrase(text) -> str:
+    """A client's phrase: text, printable, whitespace folded, 1 to MAX_PHRASE
+    characters; else InputError."""
+    if not isinstance(text, str):
+        raise InputError("view: the phrase must be text")
+    text = " ".join("".join(c if c.isprintable() else " " for c in text).split())
+    if not text:
+        raise InputError("view: the phrase is empty; type what to look for")
+    if len(text) > MAX_PHRASE:
+        raise InputError(
+            f"view: a phrase of {len(text):,} characters; at most {MAX_PHRASE}"
+        )
+    return text
 
 
 @dataclass
@@ -52,15 +90,25 @@ class QueryAnswer:
     mask: np.ndarray  # [P] bool
 
     def line(self, sent: float | None = None) -> str:
-        """The panel's status line; `sent`: seconds from the press to the new
-        colours handed to the page."""
+        """The panel's status line (markdown; the phrase as plain characters);
+        `sent`: seconds from the press to the new colours handed to the page."""
         took = f"select {self.seconds * 1e3:.0f} ms"
         if sent is not None:
             took += f", highlight sent {sent * 1e3:.0f} ms"
         return (
-            f"**{self.text}**: {self.selected:,} of {self.total:,} Gaussians, level "
-            f"{self.level}, score {self.score:.3f} ({took})"
+            f"**{plain(self.text)}**: {self.selected:,} of {self.total:,} Gaussians, "
+            f"level {plain(self.level)}, score {self.score:.3f} ({took})"
         )
+
+
+@dataclass
+class ViewState:
+    """One browser's choices."""
+
+    appearance: str = NEUTRAL
+    answer: QueryAnswer | None = None
+    exports: int = 0
+    busy: bool = False  # a query or a tour of this browser is running
 
 
 def _fibonacci_sphere(n: int) -> np.ndarray:
@@ -83,8 +131,10 @@ def _centre(cam_from_world: np.ndarray) -> np.ndarray:
 
 
 class ViewSession:
-    """A trained chain loaded once for interactive use: baked colours per
-    appearance, phrase queries on the Gaussians, heatmaps of any camera.
+    """A trained chain loaded once for interactive use, shared by every browser:
+    baked colours per appearance, phrase queries on the Gaussians (answers kept
+    in a bounded cache, by case-folded phrase), heatmaps of any camera, exports.
+    Thread-safe (viser calls back from a thread pool).
 
     Args:
         chain: a chain whose train-male stage is done (see `ready_chain`).
@@ -102,6 +152,7 @@ class ViewSession:
         vocab = getattr(self.querier.encoder, "phrases", None)
         if vocab:
             self.querier.add_queries(list(vocab))
+        self.querier.base = len(self.querier.phrases)  # never forgotten
         if self.querier.decoder.mode == "table":  # built once, before any query
             _ = self.querier.decoder.table
         self.field = self.querier.field
@@ -113,37 +164,47 @@ class ViewSession:
         self.photos = [v.name for v in self.views if v.name in self.field.embeddings]
         self.appearances = [NEUTRAL, *self.photos] if self.field.wild else [NEUTRAL]
         self._baked: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        self.answer: QueryAnswer | None = None
-        self.appearance = NEUTRAL
-        self.lock = threading.Lock()  # viser calls back from its thread pool
+        self._answers: OrderedDict[str, QueryAnswer] = OrderedDict()
+        self.exports = 0
+        self.lock = threading.RLock()
 
     def close(self) -> None:
         close_inputs(self.inputs)
 
     # ------------------------------------------------------------ appearance --
+    def check_appearance(self, appearance) -> str:
+        """`appearance` if it is one of the scene's (else InputError)."""
+        if not isinstance(appearance, str) or appearance not in self.appearances:
+            raise InputError(
+                f"view: no appearance {str(appearance)[:80]!r}; choose one of the "
+                "scene's photos"
+            )
+        return appearance
+
     def baked(self, appearance: str) -> tuple[np.ndarray, np.ndarray]:
         """(RGB [P, 3] of every Gaussian, sky dome RGB [SKY_POINTS, 3]) under an
         appearance (a photo name or NEUTRAL), float32 in [0, 1]; baked once."""
-        if appearance not in self.appearances:
-            raise InputError(
-                f"view: no appearance {appearance!r}; choose one of the scene's photos"
-            )
-        if appearance not in self._baked:
-            from ptovs.field.export import baked_sh
+        appearance = self.check_appearance(appearance)
+        with self.lock:
+            if appearance not in self._baked:
+                self._baked[appearance] = self._bake(appearance)
+            return self._baked[appearance]
 
-            sh = baked_sh(self.field, _image(appearance))
-            rgb = (SH_C0 * sh[:, 0] + 0.5).clamp(0, 1).numpy().astype(np.float32)
-            sky = np.zeros((SKY_POINTS, 3), np.float32)
-            emb = self._embedding(appearance)
-            if emb is not None:
-                dirs = torch.from_numpy(_fibonacci_sphere(SKY_POINTS)).float()
-                with torch.no_grad():
-                    self.field.nets.eval()
-                    col = self.field.nets.background(dirs[None], emb[0])[0]
-                    col = self.field.nets.map_colors(col, emb[0])
-                sky = col.clamp(0, 1).numpy().astype(np.float32)
-            self._baked[appearance] = (rgb, sky)
-        return self._baked[appearance]
+    def _bake(self, appearance: str) -> tuple[np.ndarray, np.ndarray]:
+        from ptovs.field.export import baked_sh
+
+        sh = baked_sh(self.field, _image(appearance))
+        rgb = (SH_C0 * sh[:, 0] + 0.5).clamp(0, 1).numpy().astype(np.float32)
+        sky = np.zeros((SKY_POINTS, 3), np.float32)
+        emb = self._embedding(appearance)
+        if emb is not None:
+            dirs = torch.from_numpy(_fibonacci_sphere(SKY_POINTS)).float()
+            with torch.no_grad():
+                self.field.nets.eval()
+                col = self.field.nets.background(dirs[None], emb[0])[0]
+                col = self.field.nets.map_colors(col, emb[0])
+            sky = col.clamp(0, 1).numpy().astype(np.float32)
+        return rgb, sky
 
     def _embedding(self, appearance: str) -> torch.Tensor | None:
         """[1, D]: the appearance's embedding (None for a plain field)."""
@@ -153,55 +214,75 @@ class ViewSession:
 
         return appearance_embedding(self.field, _image(appearance))[None]
 
-    def colors(self) -> np.ndarray:
-        """RGB [P, 3] to show: the chosen appearance, the selection in HIGHLIGHT."""
-        rgb = self.baked(self.appearance)[0].copy()
-        if self.answer is not None:
-            rgb[self.answer.mask] = HIGHLIGHT
+    def colors(self, appearance: str, answer: QueryAnswer | None) -> np.ndarray:
+        """RGB [P, 3] to show: the appearance's, the selection in HIGHLIGHT."""
+        rgb = self.baked(appearance)[0].copy()
+        if answer is not None:
+            rgb[answer.mask] = HIGHLIGHT
         return rgb
 
-    def sky_points(self) -> tuple[np.ndarray, np.ndarray, float]:
+    def sky_points(self, appearance: str) -> tuple[np.ndarray, np.ndarray, float]:
         """(positions [S, 3], RGB [S, 3], radius) of the sky dome: a sphere three
         times as far from the scene's centre as its farthest camera."""
         cams = np.stack([_centre(v.cam_from_world) for v in self.views])
         centre = np.median(self.centers, 0)
         radius = 3.0 * float(np.max(np.linalg.norm(cams - centre, axis=1)) + 1e-6)
         pos = centre + radius * _fibonacci_sphere(SKY_POINTS)
-        return pos.astype(np.float32), self.baked(self.appearance)[1], radius
+        return pos.astype(np.float32), self.baked(appearance)[1], radius
 
     # ---------------------------------------------------------------- queries --
-    def query(self, text: str) -> QueryAnswer:
+    def _phrase(self, text: str) -> str:
+        """`text` made answerable by the querier, which forgets the phrases it
+        was given after its own once more than EXTRA_PHRASES are held."""
+        q = self.querier
+        if text not in q.index and len(q.phrases) - q.base >= EXTRA_PHRASES:
+            q.truncate(q.base)
+        (text,) = q.add_queries([text])
+        return text
+
+    def query(self, text) -> QueryAnswer:
         """Select the Gaussians `text` describes (as `ptovs select`); InputError
-        for a phrase the encoder cannot embed."""
+        for a phrase that is not text, too long, or one the encoder cannot embed.
+        Answers are kept (ANSWERS, least recently used dropped) by the phrase
+        case-folded: the first casing asked answers for all."""
         from ptovs.field.query import SelectOptions
 
-        t0 = time.perf_counter()
-        (text,) = self.querier.add_queries([text])
-        sel = self.querier.select(text, SelectOptions())
-        self.answer = QueryAnswer(
-            text=text,
-            level=str(self.querier.levels[sel.level]),
-            score=float(sel.score),
-            selected=int(sel.mask.sum()),
-            total=len(sel.mask),
-            seconds=time.perf_counter() - t0,
-            mask=np.asarray(sel.mask, bool),
-        )
-        return self.answer
+        text = clean_phrase(text)
+        key = text.casefold()
+        with self.lock:
+            if key in self._answers:
+                self._answers.move_to_end(key)
+                return self._answers[key]
+            t0 = time.perf_counter()
+            text = self._phrase(text)
+            sel = self.querier.select(text, SelectOptions())
+            answer = QueryAnswer(
+                text=text,
+                level=str(self.querier.levels[sel.level]),
+                score=float(sel.score),
+                selected=int(sel.mask.sum()),
+                total=len(sel.mask),
+                seconds=time.perf_counter() - t0,
+                mask=np.asarray(sel.mask, bool),
+            )
+            self._answers[key] = answer
+            while len(self._answers) > ANSWERS:
+                self._answers.popitem(last=False)
+            return answer
 
-    def clear(self) -> None:
-        self.answer = None
-
-    def heatmap(self, cam: Camera) -> np.ndarray:
-        """[H, W, 3] uint8: the current phrase's relevancy in `cam` over the render
-        (the plain render when no phrase is asked)."""
+    def heatmap(
+        self, cam: Camera, appearance: str, answer: QueryAnswer | None
+    ) -> np.ndarray:
+        """[H, W, 3] uint8: the answer's relevancy in `cam` over the render under
+        `appearance` (the plain render when no answer is given)."""
         from ptovs.visual import heatmap, to_uint8
 
-        with torch.no_grad():
-            rgb = self.field.render(cam, self._embedding(self.appearance))[0].numpy()
-        if self.answer is None:
-            return to_uint8(rgb)
-        (res,) = self.querier.answer_view(cam, [self.answer.text])
+        appearance = self.check_appearance(appearance)
+        with self.lock, torch.no_grad():
+            rgb = self.field.render(cam, self._embedding(appearance))[0].numpy()
+            if answer is None:
+                return to_uint8(rgb)
+            (res,) = self.querier.answer_view(cam, [self._phrase(answer.text)])
         return heatmap(res.smoothed[res.level], rgb)
 
     # -------------------------------------------------------------- cameras --
@@ -219,25 +300,34 @@ class ViewSession:
         return camera_path(keys, frames, width, height)
 
     # --------------------------------------------------------------- export --
-    def export(self) -> Path:
-        """Write the selection as a 3DGS PLY under out_dir (a fresh name); its
-        appearance is the chosen one."""
+    def export(self, answer: QueryAnswer | None, appearance: str) -> Path:
+        """Write the selection as a 3DGS PLY under out_dir (a fresh name, never
+        over a file); its appearance is the given one. At most
+        MAX_EXPORTS_TOTAL per session."""
         from ptovs.field.export import export_field_ply
 
-        if self.answer is None or self.answer.selected == 0:
+        if answer is None or answer.selected == 0:
             raise InputError("view: nothing is selected; ask for a phrase first")
-        slug = re.sub(r"[^A-Za-z0-9]+", "-", self.answer.text).strip("-") or "sel"
-        self.out_dir.mkdir(parents=True, exist_ok=True)
-        n = 1
-        while (path := self.out_dir / f"{slug}-{n}.ply").exists():
-            n += 1
-        export_field_ply(
-            self.inputs.reconstruct,
-            path,
-            image=_image(self.appearance),
-            index=self.answer.mask,
-            field=self.field,
-        )
+        appearance = self.check_appearance(appearance)
+        slug = re.sub(r"[^A-Za-z0-9]+", "-", answer.text).strip("-")[:60] or "sel"
+        with self.lock:
+            if self.exports >= MAX_EXPORTS_TOTAL:
+                raise InputError(
+                    f"view: this server has written {self.exports} PLYs, its limit; "
+                    "restart it to export more"
+                )
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            n = 1
+            while (path := self.out_dir / f"{slug}-{n}.ply").exists():
+                n += 1
+            export_field_ply(
+                self.inputs.reconstruct,
+                path,
+                image=_image(appearance),
+                index=answer.mask,
+                field=self.field,
+            )
+            self.exports += 1
         return path
 
 
@@ -260,7 +350,8 @@ def ready_chain(obj: RunContext, scene_name, data, variant, sets):
 def check_port(host: str, port: int) -> None:
     """InputError if `port` on `host` cannot be bound (viser would silently take
     the next one)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
         try:
             s.bind((host, port))
         except OSError as exc:
@@ -271,12 +362,16 @@ def check_port(host: str, port: int) -> None:
 
 
 def _camera_of(client_camera, width: int) -> Camera:
-    """Our Camera from a viser client camera (OpenCV axes, vertical fov)."""
+    """Our Camera from a viser client camera (OpenCV axes, vertical fov); the
+    client's aspect and fov are clamped (a page sets them)."""
     from viser import transforms as tf
 
-    aspect = float(client_camera.aspect) or 4 / 3
+    aspect = float(client_camera.aspect)
+    aspect = min(max(aspect, 0.25), 4.0) if np.isfinite(aspect) else 4 / 3
     height = max(8, round(width / aspect))
-    f = 0.5 * height / np.tan(0.5 * float(client_camera.fov))
+    fov = float(client_camera.fov)
+    fov = min(max(fov, 0.05), 3.0) if np.isfinite(fov) else 1.0
+    f = 0.5 * height / np.tan(0.5 * fov)
     rot = tf.SO3(np.asarray(client_camera.wxyz, float)).as_matrix()
     t = np.eye(4)
     t[:3, :3] = rot.T
@@ -299,29 +394,43 @@ def _pose_of(cam_from_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return tf.SO3.from_matrix(world_from_cam).wxyz, _centre(t)
 
 
-class Page:
-    """The viser server and its panel over one ViewSession (handles kept for tests)."""
+def _safely(method):
+    """A panel handler that answers its own errors in the page: an InputError's
+    message, anything else as an internal error (logged on the server)."""
 
-    def __init__(self, session: ViewSession, host: str, port: int, heat_width: int):
-        import viser
-
-        self.session = session
-        self.heat_width = heat_width
-        self.splats = None  # the splat node, added by the first draw
-        self.server = viser.ViserServer(host=host, port=port, verbose=False)
-        if self.server.get_port() != port:  # lost the port after check_port
-            self.server.stop()
-            raise InputError(
-                f"view: port {port} on {host} was taken while starting; choose "
-                "another with --port"
+    @functools.wraps(method)
+    def run(self, *args, **kwargs):
+        try:
+            return method(self, *args, **kwargs)
+        except InputError as exc:
+            self.say(f"⚠ {plain(exc)}")
+        except Exception as exc:  # noqa: BLE001 - a handler never dies silently
+            print(f"view: {method.__name__} failed: {exc!r}", file=sys.stderr)
+            self.say(
+                f"⚠ internal error ({plain(type(exc).__name__)}); see the server log"
             )
-        s = session
-        ups = [-np.asarray(v.cam_from_world)[1, :3] for v in s.views]
-        up = np.mean(ups, 0)
-        self.server.scene.set_up_direction(tuple(up / (np.linalg.norm(up) + 1e-12)))
-        gui = self.server.gui
+        return None
+
+    return run
+
+
+class Panel:
+    """One browser's controls, splats, sky and choices (no other browser sees or
+    changes them). Handlers are plain methods: tests call them, the page calls
+    them; each answers its own errors in this browser's status line."""
+
+    def __init__(self, page: Page, client) -> None:
+        self.page = page
+        self.client = client
+        self.session = s = page.session
+        self.state = ViewState()
+        self.splats = None  # the splat node, added by the first draw
+        self.sky = None
+        self._busy = threading.Lock()
+        gui = client.gui
+        gui.configure_theme(show_share_button=False)
         gui.add_markdown(
-            f"**ptovs view** · {s.scene.name} · {len(s.centers):,} Gaussians"
+            f"**ptovs view** · {plain(s.scene.name)} · {len(s.centers):,} Gaussians"
         )
         self.appearance = gui.add_dropdown(
             "Appearance", tuple(s.appearances), initial_value=NEUTRAL
@@ -329,33 +438,39 @@ class Page:
         self.text = gui.add_text("Phrase", initial_value="")
         self.ask = gui.add_button("Highlight")
         self.clear = gui.add_button("Clear")
-        self.status = gui.add_markdown("Type a phrase and press Highlight.")
+        self.status = gui.add_markdown(READY)
         self.nearest = gui.add_button("Nearest photo")
         self.export = gui.add_button("Export selection (PLY)")
         self.play = gui.add_button("Play tour")
+        w = page.heat_width
         self.heat = gui.add_image(
-            np.zeros((heat_width * 3 // 4, heat_width, 3), np.uint8),
-            label="Relevancy (current view)",
+            np.zeros((w * 3 // 4, w, 3), np.uint8), label="Relevancy (current view)"
         )
         self.appearance.on_update(lambda _: self.set_appearance(self.appearance.value))
-        self.ask.on_click(lambda e: self.ask_phrase(self.text.value, e.client))
-        self.clear.on_click(lambda e: self.clear_phrase(e.client))
-        self.nearest.on_click(lambda e: self.go_nearest(e.client))
+        self.ask.on_click(lambda _: self.ask_phrase(self.text.value))
+        self.clear.on_click(lambda _: self.clear_phrase())
+        self.nearest.on_click(lambda _: self.go_nearest())
         self.export.on_click(lambda _: self.export_selection())
-        self.play.on_click(lambda e: self.play_tour(e.client))
-        self.server.on_client_connect(self._connected)
+        self.play.on_click(lambda _: self.play_tour())
         self.draw()
         self.draw_sky()
+        view = s.views[0]
+        wxyz, pos = _pose_of(view.cam_from_world)
+        with client.atomic():
+            client.camera.wxyz, client.camera.position = wxyz, pos
+        self.refresh_heatmap()
 
-    # each handler is a plain method: tests call them, the page calls them
+    def say(self, markdown: str) -> None:
+        """The status line (markdown: callers pass client text through `plain`)."""
+        self.status.content = markdown
+
     def draw(self) -> None:
         """Send the splats' colours: the whole node once, then only its buffer with
         the colour words replaced (the page keeps its geometry)."""
-        s = self.session
-        with s.lock:
-            rgb = s.colors()
+        s, st = self.session, self.state
+        rgb = s.colors(st.appearance, st.answer)
         if self.splats is None:
-            self.splats = self.server.scene.add_gaussian_splats(
+            self.splats = self.client.scene.add_gaussian_splats(
                 "/gaussians", s.centers, s.covariances, rgb, s.opacities
             )
             return
@@ -367,92 +482,169 @@ class Page:
 
     def draw_sky(self) -> None:
         """The sky dome under the chosen appearance (only when that changes)."""
-        with self.session.lock:
-            pos, rgb, radius = self.session.sky_points()
+        pos, rgb, radius = self.session.sky_points(self.state.appearance)
         spacing = radius * np.sqrt(4 * np.pi / len(pos))  # between dome points
-        self.sky = self.server.scene.add_point_cloud(
+        self.sky = self.client.scene.add_point_cloud(
             "/sky", pos, rgb, point_size=float(1.5 * spacing)
         )
 
-    def set_appearance(self, name: str) -> None:
-        self.session.appearance = name
+    @_safely
+    def set_appearance(self, name) -> None:
+        try:
+            self.state.appearance = self.session.check_appearance(name)
+        except InputError:
+            self.appearance.value = self.state.appearance  # the page shows ours
+            raise
         self.draw()
         self.draw_sky()
+        self.refresh_heatmap()
 
-    def ask_phrase(self, text: str, client=None) -> QueryAnswer | None:
-        t0 = time.perf_counter()
-        s = self.session
-        try:
-            with s.lock:
-                answer = s.query(text)
-        except InputError as exc:
-            self.status.content = f"⚠ {exc}"
+    @_safely
+    def ask_phrase(self, text) -> QueryAnswer | None:
+        if not self._busy.acquire(blocking=False):
+            self.say("⚠ still working on the last request; press again when it ends")
             return None
-        self.draw()  # the highlighted colours go out first, then the status line
-        sent = time.perf_counter() - t0
-        self.status.content = answer.line(sent)
-        self.refresh_heatmap(client)
-        return answer
+        try:
+            t0 = time.perf_counter()
+            answer = self.session.query(text)
+            self.state.answer = answer
+            self.draw()  # the highlighted colours go out first, then the status line
+            self.say(answer.line(time.perf_counter() - t0))
+            self.refresh_heatmap()
+            return answer
+        finally:
+            self._busy.release()
 
-    def clear_phrase(self, client=None) -> None:
-        self.session.clear()
-        self.status.content = "Type a phrase and press Highlight."
+    @_safely
+    def clear_phrase(self) -> None:
+        self.state.answer = None
+        self.say(READY)
         self.draw()
-        self.refresh_heatmap(client)
+        self.refresh_heatmap()
 
-    def _client(self, client=None):
-        """The client an event came from, else the first connected (or None)."""
-        if client is None:
-            clients = list(self.server.get_clients().values())
-            client = clients[0] if clients else None
-        return client
+    def refresh_heatmap(self) -> None:
+        cam = _camera_of(self.client.camera, self.page.heat_width)
+        st = self.state
+        self.heat.image = self.session.heatmap(cam, st.appearance, st.answer)
 
-    def refresh_heatmap(self, client=None) -> None:
-        client = self._client(client)
-        if client is None:
-            return
-        cam = _camera_of(client.camera, self.heat_width)
-        with self.session.lock:
-            self.heat.image = self.session.heatmap(cam)
-
-    def go_nearest(self, client=None) -> None:
-        client = self._client(client)
-        if client is None:
-            self.status.content = "No browser is connected."
-            return
-        view = self.session.nearest_view(np.asarray(client.camera.position, float))
+    @_safely
+    def go_nearest(self) -> None:
+        cam = self.client.camera
+        view = self.session.nearest_view(np.asarray(cam.position, float))
         wxyz, pos = _pose_of(view.cam_from_world)
-        with client.atomic():
-            client.camera.wxyz, client.camera.position = wxyz, pos
-        self.status.content = f"At photo {view.name}."
+        with self.client.atomic():
+            cam.wxyz, cam.position = wxyz, pos
+        self.say(f"At photo {plain(view.name)}.")
 
+    @_safely
     def export_selection(self) -> Path | None:
-        try:
-            with self.session.lock:
-                path = self.session.export()
-        except InputError as exc:
-            self.status.content = f"⚠ {exc}"
-            return None
-        self.status.content = f"Wrote {path}"
+        if self.state.exports >= MAX_EXPORTS:
+            raise InputError(
+                f"view: this page has exported {self.state.exports} PLYs, its limit"
+            )
+        path = self.session.export(self.state.answer, self.state.appearance)
+        self.state.exports += 1
+        # the file's name only: no other client learns the server's folders
+        self.say(f"Wrote {plain(path.name)} into the export folder.")
         return path
 
-    def play_tour(self, client=None, frames: int = 90, fps: float = 30.0) -> None:
-        client = self._client(client)
-        if client is None:
-            self.status.content = "No browser is connected."
+    @_safely
+    def play_tour(self, frames: int = 90, fps: float = 30.0) -> None:
+        if not self._busy.acquire(blocking=False):
+            self.say("⚠ still working on the last request; press again when it ends")
             return
-        for cam in self.session.tour(frames):
-            wxyz, pos = _pose_of(cam.cam_from_world.numpy())
-            with client.atomic():
-                client.camera.wxyz, client.camera.position = wxyz, pos
-            time.sleep(1 / fps)
+        try:
+            for cam in self.session.tour(frames):
+                wxyz, pos = _pose_of(cam.cam_from_world.numpy())
+                with self.client.atomic():
+                    self.client.camera.wxyz, self.client.camera.position = wxyz, pos
+                time.sleep(1 / fps)
+        finally:
+            self._busy.release()
+
+
+class Page:
+    """The viser server behind the guard; one Panel per connected browser.
+
+    Args:
+        session: the shared ViewSession.
+        host, port: where to listen (check `--allow-remote` before a non-loopback
+            host: the command does).
+        heat_width: the heatmap's width in pixels.
+        token: the URL's secret (None: a fresh one each run).
+        max_clients: browsers served at once.
+    """
+
+    def __init__(
+        self,
+        session: ViewSession,
+        host: str,
+        port: int,
+        heat_width: int,
+        token: str | None = None,
+        max_clients: int = MAX_CLIENTS,
+    ):
+        import viser
+        from viser import _messages
+
+        from ptovs.apps.view_guard import Guard, guarded_viser, viser_client_root
+
+        self.session = session
+        self.heat_width = heat_width
+        self.guard = Guard(viser_client_root(), host, port, token, max_clients)
+        self.panels: dict[int, Panel] = {}
+        self._lock = threading.Lock()
+        self.server = None
+        try:
+            with guarded_viser(self.guard):
+                self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        except BaseException:
+            if self.server is not None:
+                self.server.stop()
+            raise
+        if self.server.get_port() != port:  # lost the port after check_port
+            self.server.stop()
+            raise InputError(
+                f"view: port {port} on {host} was taken while starting; choose "
+                "another with --port"
+            )
+        # no share tunnel: its requests are unregistered (and dropped by the guard)
+        ws = self.server._websock_server
+        for kind in (_messages.ShareUrlRequest, _messages.ShareUrlDisconnect):
+            if kind in ws._incoming_handlers:
+                ws.unregister_handler(kind)
+        self.server.gui.configure_theme(show_share_button=False)
+        ups = [-np.asarray(v.cam_from_world)[1, :3] for v in session.views]
+        up = np.mean(ups, 0)
+        self.server.scene.set_up_direction(tuple(up / (np.linalg.norm(up) + 1e-12)))
+        name = socket.gethostname() if host in ("0.0.0.0", "::", "") else host
+        name = f"[{name}]" if ":" in name else name
+        self.url = f"http://{name}:{port}/{self.guard.token}/"
+        self.server.on_client_connect(self._connected)
+        self.server.on_client_disconnect(self._disconnected)
 
     def _connected(self, client) -> None:
-        view = self.session.views[0]
-        wxyz, pos = _pose_of(view.cam_from_world)
-        with client.atomic():
-            client.camera.wxyz, client.camera.position = wxyz, pos
-        self.refresh_heatmap(client)
+        try:
+            panel = Panel(self, client)
+        except Exception as exc:  # noqa: BLE001 - one page's failure, said and logged
+            print(f"view: a page could not be set up: {exc!r}", file=sys.stderr)
+            return
+        with self._lock:
+            self.panels[client.client_id] = panel
+
+    def _disconnected(self, client) -> None:
+        with self._lock:
+            self.panels.pop(client.client_id, None)
+
+    def panel(self, timeout: float = 30.0) -> Panel:
+        """The first connected browser's panel (waits for one; tests use it)."""
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            with self._lock:
+                if self.panels:
+                    return next(iter(self.panels.values()))
+            time.sleep(0.05)
+        raise TimeoutError("no browser connected")
 
     def stop(self) -> None:
         self.server.stop()
@@ -464,7 +656,13 @@ class Page:
     "--host",
     default="127.0.0.1",
     show_default=True,
-    help="Address to serve on; 0.0.0.0 exposes the page to the network.",
+    help="Address to serve on. Anything but the loopback needs --allow-remote.",
+)
+@click.option(
+    "--allow-remote",
+    is_flag=True,
+    help="Allow a --host other than the loopback (the page then reaches every "
+    "machine that reaches this one; the printed URL's token is still needed).",
 )
 @click.option(
     "--port",
@@ -493,6 +691,7 @@ def command(
     scene_name: str | None,
     data: Path | None,
     host: str,
+    allow_remote: bool,
     port: int,
     out_dir: Path,
     heat_width: int,
@@ -503,10 +702,26 @@ def command(
 
     Needs the trained chain (`ptovs train-male`, or `make demo`) and viser
     (`make setup` installs it: the [view] extra, then viser==1.0.0 --no-deps).
-    Prints the URL; Ctrl-C stops the server. Buttons: Highlight the phrase,
-    Clear, Nearest photo, Export selection (PLY, into --out-dir), Play tour.
+    Prints the URL, which carries a per-run token: only a page opened from it
+    can drive the viewer. Ctrl-C stops the server. Buttons: Highlight the
+    phrase, Clear, Nearest photo, Export selection (PLY, into --out-dir), Play
+    tour. Each browser has its own controls; at most 4 at once.
     """
     t0 = time.perf_counter()
+    if not is_loopback(host):
+        if not allow_remote:
+            raise InputError(
+                f"view: --host {host} would serve the scene, its queries and "
+                "exports into --out-dir to every machine that can reach this one; "
+                "add --allow-remote if that is meant (the printed URL's token is "
+                "still required), or leave --host at 127.0.0.1"
+            )
+        click.echo(
+            f"view: WARNING: serving on {host}: every machine that can reach this "
+            "one can load the page; anyone given the URL (its token) can query the "
+            f"scene and write PLYs into {out_dir}. Use a trusted network only.",
+            err=True,
+        )
     check_port(host, port)
     chain, ref = ready_chain(obj, scene_name, data, variant, sets)
     try:
@@ -519,7 +734,7 @@ def command(
     session = ViewSession(chain, out_dir)
     page = Page(session, host, port, heat_width)
     click.echo(
-        f"view {ref.name}: http://{host}:{port}  ({len(session.centers):,} Gaussians,"
+        f"view {ref.name}: {page.url}  ({len(session.centers):,} Gaussians,"
         f" ready in {time.perf_counter() - t0:.1f} s; Ctrl-C stops)"
     )
     # Ctrl-C (and a TERM) stop the server, even when started with SIGINT ignored

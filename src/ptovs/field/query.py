@@ -236,6 +236,7 @@ class Querier:
         check_vocabulary(encoder, phrases)
         self.encoder = encoder
         self.phrases = phrases
+        self.base = len(phrases)  # the phrases `truncate` never forgets
         self.index = {p: i for i, p in enumerate(phrases)}
         emb = torch.from_numpy(np.asarray(encoder.encode_texts(phrases), np.float32))
         ae = load_autoencoder(inputs.ae)
@@ -270,6 +271,23 @@ class Querier:
                 self.index[t] = len(self.phrases)
                 self.phrases.append(t)
         return texts
+
+    def truncate(self, n: int) -> None:
+        """Forget every phrase added after the first `n` (with its decoder rows and
+        cached tables): an interactive session's memory stays bounded. The
+        queries given at construction are never forgotten."""
+        n = max(n, self.base)
+        if n >= len(self.phrases):
+            return
+        for t in self.phrases[n:]:
+            del self.index[t]
+        del self.phrases[n:]
+        self.decoder.truncate(n)
+        self._tables = {
+            k: v
+            for k, v in self._tables.items()
+            if k[0] < n and all(q < n for q in k[1])
+        }
 
     @torch.no_grad()
     def code_maps(self, view) -> tuple[torch.Tensor, torch.Tensor]:

@@ -109,6 +109,12 @@ class PhraseDecoder:
             self._table = torch.cat((self._table, self._grid_table(phrases)))
         self.phrases = torch.cat((self.phrases, phrases))
 
+    def truncate(self, n: int) -> None:
+        """Keep the first `n` phrases (and their table rows), forget the rest."""
+        self.phrases = self.phrases[:n]
+        if self._table is not None:
+            self._table = self._table[:n]
+
     @torch.no_grad()
     def lookup(self, codes: Tensor, table: Tensor | None = None) -> Tensor:
         """[..., 3] → [..., C] by trilinear interpolation in a table.
