@@ -41,9 +41,10 @@ class Results(dict):
         self["machine"] = machine()
 
     def save(self) -> None:
-        tmp = self.path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(self, indent=1))
-        os.replace(tmp, self.path)
+        from ptovs.atomic import atomic_file
+
+        with atomic_file(self.path, keep_suffix=False) as tmp:
+            tmp.write_text(json.dumps(self, indent=1))
 
 
 def run_ptovs(work: Path, *args: str) -> tuple[float, float, str]:

@@ -70,10 +70,11 @@ def main() -> None:
             f"no view {args.view!r}; have {', '.join(v.name for v in views)}"
         )
     pic = compose(view)
-    tmp = args.out.with_name(args.out.stem + ".tmp.png")
-    if not cv2.imwrite(str(tmp), pic):
-        raise SystemExit(f"cannot write {tmp}")
-    tmp.replace(args.out)
+    from ptovs.atomic import atomic_file
+
+    with atomic_file(args.out) as tmp:  # keeps .png: cv2 picks the format by it
+        if not cv2.imwrite(str(tmp), pic):
+            raise SystemExit(f"cannot write {args.out}")
     print(f"{args.out}: {view.name}, {pic.shape[1]}×{pic.shape[0]}")
 
 

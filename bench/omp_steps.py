@@ -55,9 +55,10 @@ def warm_state(scene: Path, path: Path, warm: int) -> None:
     cfg, images, cams, points = _setup(scene)
     cfg = dataclasses.replace(cfg, iterations=warm)
     state = train(cfg, images, cams, points, desc="warm-up")
-    tmp = path.with_suffix(".tmp")
-    torch.save(state.to_dict(), tmp)
-    os.replace(tmp, path)
+    from ptovs.atomic import atomic_file
+
+    with atomic_file(path) as tmp:
+        torch.save(state.to_dict(), tmp)
 
 
 def child(scene: Path, path: Path, steps: int) -> None:
