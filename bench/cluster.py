@@ -29,6 +29,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -110,10 +111,14 @@ def sacct(env: dict) -> list[dict]:
 
 def slurm_part(root: Path) -> dict:
     data, work = tiny_data(root), fresh(root / "slurm_work")
-    cluster = Path("/tmp/ptovs-bench-slurm")
+    # a new private folder each run: start.sh refuses one it did not make (or that
+    # others can write), and a fixed /tmp name could be anyone's. In /tmp, not $TMPDIR:
+    # munged wants the folders above its socket searchable by all, the path short.
+    cluster = Path(tempfile.mkdtemp(prefix="ptovs-bench-slurm-", dir="/tmp"))
     start = subprocess.run(["bash", str(ROOT / "workflow/slurm-local/start.sh"), str(cluster)],
                            capture_output=True, text=True)  # fmt: skip
     if start.returncode:
+        shutil.rmtree(cluster, ignore_errors=True)
         return {"error": start.stderr[-4000:]}
     env = {**os.environ, "SLURM_CONF": str(cluster / "slurm.conf"),
            "PATH": f"{cluster / 'bin'}:{os.environ['PATH']}"}  # fmt: skip
@@ -126,6 +131,7 @@ def slurm_part(root: Path) -> dict:
     finally:
         subprocess.run(["bash", str(ROOT / "workflow/slurm-local/stop.sh"), str(cluster)],
                        capture_output=True)  # fmt: skip
+        shutil.rmtree(cluster, ignore_errors=True)
     return res
 
 

@@ -1,6 +1,9 @@
 #!/usr/bin/env bash
 # Bring up a throwaway single-node Slurm cluster (munged, mariadbd, slurmdbd, slurmctld,
-# slurmd) with job accounting, everything inside DIR, listening on 127.0.0.1 only.
+# slurmd) with job accounting, everything inside DIR, listening on loopback only.
+# DIR must be new, empty or made by an earlier start.sh, and only root (the caller) may be
+# able to change it or any directory above it; anything else is refused (exit 2) before
+# anything is written, removed or started (see check_dir in stop.sh, and README.md).
 # Runs as root, writes its own configs (nothing from /etc/slurm or /etc/munge is used).
 #   usage: start.sh DIR      then: source DIR/env.sh; sbatch ...; sacct ...
 #   stop with: stop.sh DIR   (start.sh also calls it first, so a re-run restarts cleanly)
@@ -10,20 +13,47 @@ set -euo pipefail
 [[ $# -eq 1 ]] || { echo "usage: $0 DIR" >&2; exit 2; }
 [[ $(id -u) -eq 0 ]] || { echo "$0: must run as root" >&2; exit 2; }
 HERE=$(cd "$(dirname "$0")" && pwd)
-mkdir -p "$1"
-DIR=$(cd "$1" && pwd)
 DEADLINE=$((SECONDS + ${START_TIMEOUT:-90}))
 for exe in munged mungekey mariadbd mariadb-install-db mariadb slurmdbd slurmctld slurmd \
            sacctmgr sinfo sacct srun sbatch squeue scancel scontrol sshare python3; do
     command -v "$exe" >/dev/null || { echo "$0: $exe not found (see README.md)" >&2; exit 1; }
 done
-# unix socket paths are limited to 108 bytes
-(( ${#DIR} <= 80 )) || { echo "$0: DIR path too long for unix sockets: $DIR" >&2; exit 2; }
+
+# Is DIR safe for root to write, run from and clean? Refuses (exit 2) before anything is
+# written, removed or started; sets DIR (physical path) and DIR_STATE (absent, empty, ours).
+# shellcheck source=SCRIPTDIR/stop.sh
+source "$HERE/stop.sh"
+check_dir "$1" start
+
+# Loopback only. With CommunicationParameters=NoInAddrAny (NoCtldInAddrAny for slurmctld)
+# Slurm binds its daemons (and srun) not to INADDR_ANY but to the first IPv4 address that
+# this machine's host name (gethostname) resolves to, as below; so that address must be a
+# loopback one, and the whole cluster uses it (SlurmctldHost, NodeAddr, slurmdbd).
+ADDR=$(python3 -c '
+import socket
+flags = socket.AI_ADDRCONFIG | socket.AI_NUMERICSERV | socket.AI_PASSIVE | socket.AI_CANONNAME
+print(socket.getaddrinfo(socket.gethostname(), "0", socket.AF_INET, socket.SOCK_STREAM,
+                         0, flags)[0][4][0])' 2>/dev/null) || ADDR=
+if [[ ! $ADDR =~ ^127\.[0-9.]+$ ]]; then
+    echo "$0: the host name $(uname -n) resolves to '${ADDR:-nothing}', not to a loopback" \
+         "address; Slurm binds its daemons to that address, which would make them reachable" \
+         "from the network. Map the host name to 127.0.1.1 in /etc/hosts (first line" \
+         "that names it)." >&2
+    exit 1
+fi
+
+# DIR is created 711: munged needs every directory above its socket searchable by all;
+# nobody else may list or write it. Not mkdir -p: its parent was checked, nothing above.
+if [[ $DIR_STATE == absent ]]; then
+    mkdir -m 711 -- "$DIR" || refuse "could not create it"
+fi
+chmod 711 "$DIR"
+[[ $DIR_STATE == ours ]] || echo "made by workflow/slurm-local/start.sh" > "$DIR/$SLURM_LOCAL_MARKER"
 
 # Anything left over from an earlier run in DIR: stop it and start from a clean slate
 # (only our own sub-paths are removed, never DIR itself).
 "$HERE/stop.sh" "$DIR"
-rm -rf "$DIR"/{munge,mysql,state,spool,log,run,bin} "$DIR"/{slurm.conf,slurmdbd.conf,env.sh}
+rm -rf "${DIR:?}"/{munge,mysql,state,spool,log,run,bin} "$DIR"/{slurm.conf,slurmdbd.conf,env.sh}
 mkdir -p "$DIR"/{munge,mysql,state,spool,log,run}
 chmod 755 "$DIR/munge"  # key stays 600; socket usable by all local users
 
@@ -46,12 +76,12 @@ wait_for() {
         sleep 0.5
     done
 }
-# N free TCP ports on 127.0.0.1 (all held open while choosing, so they differ)
+# free TCP ports on ADDR (all held open while choosing, so they differ)
 read -r DB_PORT DBD_PORT CTLD_PORT SLURMD_PORT < <(python3 -c '
-import socket
+import socket, sys
 ss = [socket.socket() for _ in range(4)]
-for s in ss: s.bind(("127.0.0.1", 0))
-print(*(s.getsockname()[1] for s in ss))')
+for s in ss: s.bind((sys.argv[1], 0))
+print(*(s.getsockname()[1] for s in ss))' "$ADDR")
 
 HOST=$(uname -n); HOST=${HOST%%.*}   # short host name (no need for `hostname`)
 NCPU=$(nproc)
@@ -65,7 +95,8 @@ export SLURM_CONF=$DIR/slurm.conf
 # --- configs -------------------------------------------------------------------------
 cat > "$DIR/slurm.conf" <<EOF
 ClusterName=ptovs
-SlurmctldHost=$HOST(127.0.0.1)
+SlurmctldHost=$HOST($ADDR)
+CommunicationParameters=NoCtldInAddrAny,NoInAddrAny
 SlurmctldPort=$CTLD_PORT
 SlurmdPort=$SLURMD_PORT
 SlurmUser=root
@@ -92,7 +123,7 @@ SelectTypeParameters=CR_Core_Memory
 JobAcctGatherType=jobacct_gather/linux
 JobAcctGatherFrequency=2
 AccountingStorageType=accounting_storage/slurmdbd
-AccountingStorageHost=127.0.0.1
+AccountingStorageHost=$ADDR
 AccountingStoragePort=$DBD_PORT
 AccountingStoragePass=$MUNGE_SOCK
 AccountingStoreFlags=job_comment   # sacct shows the workflow's rule and scene (--comment)
@@ -100,7 +131,7 @@ JobCompType=jobcomp/none
 InactiveLimit=0
 KillWait=5
 MinJobAge=300
-NodeName=$HOST NodeAddr=127.0.0.1 CPUs=$NCPU RealMemory=$MEM_MB State=UNKNOWN
+NodeName=$HOST NodeAddr=$ADDR CPUs=$NCPU RealMemory=$MEM_MB State=UNKNOWN
 # one node, two partitions; "gpu" has no real GRES, it stands in for a GPU partition
 PartitionName=cpu Nodes=$HOST Default=YES MaxTime=INFINITE State=UP
 PartitionName=gpu Nodes=$HOST MaxTime=INFINITE State=UP
@@ -111,7 +142,8 @@ EOF
 AuthType=auth/munge
 AuthInfo=socket=$MUNGE_SOCK
 DbdHost=localhost
-DbdAddr=127.0.0.1
+DbdAddr=$ADDR
+CommunicationParameters=NoInAddrAny
 DbdPort=$DBD_PORT
 SlurmUser=root
 PidFile=$DIR/run/slurmdbd.pid
@@ -135,11 +167,14 @@ for exe in srun sbatch squeue scancel sacct sinfo scontrol sacctmgr sshare; do
         > "$DIR/bin/$exe"
     chmod 755 "$DIR/bin/$exe"
 done
+# shellcheck disable=SC2016  # $PATH is expanded where env.sh is sourced
 printf 'export SLURM_CONF=%s\nexport PATH=%s:$PATH\n' "$SLURM_CONF" "$DIR/bin" > "$DIR/env.sh"
 
 # --- munged --------------------------------------------------------------------------
-mungekey --create --keyfile="$DIR/munge/munge.key" --force >/dev/null
-munged --force --socket="$MUNGE_SOCK" --key-file="$DIR/munge/munge.key" \
+# No --force: munged checks that the key is 0600 and the dirs of key, socket, seed and log
+# are not writable by others, and that the socket's dirs are searchable by all (DIR 711).
+mungekey --create --keyfile="$DIR/munge/munge.key" >/dev/null
+munged --socket="$MUNGE_SOCK" --key-file="$DIR/munge/munge.key" \
     --pid-file="$DIR/run/munged.pid" --log-file="$DIR/log/munged.log" \
     --seed-file="$DIR/munge/munged.seed" </dev/null >"$DIR/log/munged.out" 2>&1 || fail munged
 wait_for munged test -S "$MUNGE_SOCK"
@@ -155,8 +190,11 @@ setsid mariadbd --no-defaults --user=root --datadir="$DIR/mysql" --socket="$DB_S
     </dev/null >"$DIR/log/mariadbd.out" 2>&1 &
 MYSQL=(mariadb --no-defaults --socket="$DB_SOCK" -uroot)
 wait_for mariadbd "${MYSQL[@]}" -e 'SELECT 1'
-"${MYSQL[@]}" -e "CREATE USER 'slurm'@'127.0.0.1' IDENTIFIED BY '$DB_PASS';
-    GRANT ALL ON slurm_acct_db.* TO 'slurm'@'127.0.0.1';" || fail mariadbd
+# the password goes in on stdin, never in a command line (ps shows those to every user)
+"${MYSQL[@]}" <<EOF || fail mariadbd
+CREATE USER 'slurm'@'127.0.0.1' IDENTIFIED BY '$DB_PASS';
+GRANT ALL ON slurm_acct_db.* TO 'slurm'@'127.0.0.1';
+EOF
 
 # --- slurmdbd, then register cluster / account / user --------------------------------
 slurmdbd </dev/null >"$DIR/log/slurmdbd.out" 2>&1 || fail slurmdbd
