@@ -1,6 +1,6 @@
 # ptovs: set up, demo, test, benchmark; and run the pipeline over DATA/* scenes.
 #   make demo          fresh machine → venv, tiny synthetic scene, every stage, masks, metrics, a PLY
-#   make view          after make demo: roam the demo scene and ask it things in the browser
+#   make view          after make demo: roam the demo scene and ask it things in the browser (open the printed URL)
 #   make test          the test suite (what CI runs)
 #   make bench-accuracy  the accuracy instrument: 18 seeds, every variant, CIs (~90 min)
 #   make -j3 all       every scene under DATA in parallel, stages in order, then the
@@ -12,19 +12,39 @@ BIN    := $(VENV)/bin
 DATA   ?= data
 WORK   ?= work
 CONFIG ?= configs/default.toml
+# $(call q,TEXT): TEXT as one single-quoted shell word, whatever it holds (paths in
+# recipes go through it: a space, quote or ; in DATA or WORK stays in its argument)
+q       = '$(subst ','\'',$(1))'
+QDATA   = $(call q,$(DATA))
+QWORK   = $(call q,$(WORK))
 # the scene folders under DATA and the stages in order: one list (src/ptovs/pipeline.py)
 # for this Makefile and the cluster workflow (workflow/Snakefile); stdlib Python, so it
-# answers before the venv exists
+# answers before the venv exists. Scene names go into shell commands: a folder under
+# DATA whose name is not allowed (pipeline.SCENE_NAME: letters, digits, . _ -), or
+# such a name in SCENES=..., stops make here, before any recipe, with the script's
+# message on stderr ($(shell) alone would not stop make: .SHELLSTATUS, make >= 4.2;
+# an older make runs no scene then, the list being empty, and `ptovs table` refuses)
 ROOT   := $(patsubst %/,%,$(dir $(abspath $(lastword $(MAKEFILE_LIST)))))
-PLAN   := PYTHONPATH=$(ROOT)/src $(PYTHON) -m ptovs.pipeline
+PLAN   := PYTHONPATH=$(call q,$(ROOT)/src) $(PYTHON) -m ptovs.pipeline
+FOLDERS := $(shell $(PLAN) scenes $(QDATA))
+ifeq ($(.SHELLSTATUS),3)
+$(error a scene folder under $(DATA) has a name that is not allowed: rename it (see the message above); nothing was run)
+else ifneq ($(filter-out 0,$(.SHELLSTATUS)),)
+$(error listing the scenes under $(DATA) failed (exit $(.SHELLSTATUS), see above; is $(PYTHON) a Python 3?))
+endif
 ifeq ($(origin SCENES),undefined)
-SCENES := $(shell $(PLAN) scenes $(DATA))
+SCENES := $(FOLDERS)
+else
+SCENES_OK := $(shell $(PLAN) check-scenes $(call q,$(SCENES)))
+ifneq ($(filter-out 0,$(.SHELLSTATUS)),)
+$(error SCENES has a name that is not allowed: give other names (see the message above); nothing was run)
+endif
 endif
 STAGES := $(shell $(PLAN) stages)
 # what the pipeline targets run first and with (tests point these at their own env)
 SETUP     ?= setup
 PTOVS_BIN ?= $(BIN)/ptovs
-PTOVS  := $(PTOVS_BIN) --work-dir $(WORK) --config $(CONFIG)
+PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # the demo's text for select and roam (tiny, seed 0: its parts are a brick facade, a Doric
 # column, a tiled roof; with the default config "Doric Column" selects 10,779 of 23,988
 # Gaussians, 44.9 %, at relevancy score 0.173)
@@ -43,19 +63,19 @@ $(VENV)/.installed: pyproject.toml
 	touch $@
 
 demo: setup
-	$(BIN)/ptovs synth-scene $(DATA) --preset tiny --seed 0
-	@for s in $(STAGES); do $(PTOVS) $$s --data $(DATA)/tiny_s0 || exit 1; done
-	$(PTOVS) export-ply --data $(DATA)/tiny_s0 --out $(WORK)/tiny_s0/tiny_s0.ply
-	$(PTOVS) select "$(DEMO_TEXT)" --data $(DATA)/tiny_s0 --out $(WORK)/tiny_s0/select.ply --rest $(WORK)/tiny_s0/rest.ply
-	$(PTOVS) style --data $(DATA)/tiny_s0
-	$(PTOVS) roam "$(DEMO_TEXT)" --data $(DATA)/tiny_s0 --out $(WORK)/tiny_s0/tour.mp4 --frames 30 --size 192x144
-	$(PTOVS) status --data $(DATA)/tiny_s0
-	@echo "masks, heatmaps, overlays: $(WORK)/tiny_s0/query-out/male/; metrics: $(WORK)/tiny_s0/evaluate.md"
-	@echo "selection: $(WORK)/tiny_s0/select.ply; styles: $(WORK)/tiny_s0/style-out/male/; video: $(WORK)/tiny_s0/tour.mp4"
+	$(BIN)/ptovs synth-scene $(QDATA) --preset tiny --seed 0
+	@for s in $(STAGES); do $(PTOVS) $$s --data $(QDATA)/tiny_s0 || exit 1; done
+	$(PTOVS) export-ply --data $(QDATA)/tiny_s0 --out $(QWORK)/tiny_s0/tiny_s0.ply
+	$(PTOVS) select "$(DEMO_TEXT)" --data $(QDATA)/tiny_s0 --out $(QWORK)/tiny_s0/select.ply --rest $(QWORK)/tiny_s0/rest.ply
+	$(PTOVS) style --data $(QDATA)/tiny_s0
+	$(PTOVS) roam "$(DEMO_TEXT)" --data $(QDATA)/tiny_s0 --out $(QWORK)/tiny_s0/tour.mp4 --frames 30 --size 192x144
+	$(PTOVS) status --data $(QDATA)/tiny_s0
+	@echo "masks, heatmaps, overlays: "$(QWORK)"/tiny_s0/query-out/male/; metrics: "$(QWORK)"/tiny_s0/evaluate.md"
+	@echo "selection: "$(QWORK)"/tiny_s0/select.ply; styles: "$(QWORK)"/tiny_s0/style-out/male/; video: "$(QWORK)"/tiny_s0/tour.mp4"
 
-# after `make demo`: the demo scene in the browser (http://127.0.0.1:8080; Ctrl-C stops)
+# after `make demo`: the demo scene in the browser (open the URL it prints, with its token; Ctrl-C stops)
 view: setup
-	$(PTOVS) view --data $(DATA)/tiny_s0
+	$(PTOVS) view --data $(QDATA)/tiny_s0
 
 test: setup
 	$(BIN)/python -m pytest -q
@@ -74,34 +94,34 @@ format: setup
 bench: setup
 	$(BIN)/python bench/raster.py
 	$(BIN)/python bench/synth_timing.py
-	$(BIN)/python bench/encoder_calibration.py --seeds 0 1 2 --out $(WORK)/synthetic
+	$(BIN)/python bench/encoder_calibration.py --seeds 0 1 2 --out $(QWORK)/synthetic
 	$(BIN)/python bench/screen.py --seeds 50
-	$(BIN)/python bench/reconstruct.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
-	$(BIN)/python bench/extract.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
-	$(BIN)/python bench/train.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
-	$(BIN)/python bench/query.py --seeds 0 --data $(DATA) --work $(WORK)/bench
-	$(BIN)/python bench/style_instrument.py --preset bench --seeds 12 --out $(WORK)/bench/style_instrument.json
-	$(BIN)/python bench/style_instrument.py --preset tiny --seeds 30 --out $(WORK)/bench/style_instrument.json
-	$(BIN)/python bench/apps.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/bench
-	$(BIN)/python bench/cluster.py --parts make local slurm stages --work $(WORK)/cluster
-	$(BIN)/python bench/busy.py --work $(WORK)/busy
-	$(BIN)/python bench/busy.py --work $(WORK)/busy --competitors 2
-	$(BIN)/python bench/omp_steps.py --data $(DATA) --work $(WORK)/omp_steps
-	$(BIN)/python bench/real.py --work $(WORK)/real
-	$(BIN)/python bench/real.py --work $(WORK)/real --sets fountain_p11 --megapixels 12
-	$(BIN)/python bench/sfm.py --seeds 0 1 2 --data $(DATA) --work $(WORK)/sfm --variants \
+	$(BIN)/python bench/reconstruct.py --seeds 0 1 2 --data $(QDATA) --work $(QWORK)/bench
+	$(BIN)/python bench/extract.py --seeds 0 1 2 --data $(QDATA) --work $(QWORK)/bench
+	$(BIN)/python bench/train.py --seeds 0 1 2 --data $(QDATA) --work $(QWORK)/bench
+	$(BIN)/python bench/query.py --seeds 0 --data $(QDATA) --work $(QWORK)/bench
+	$(BIN)/python bench/style_instrument.py --preset bench --seeds 12 --out $(QWORK)/bench/style_instrument.json
+	$(BIN)/python bench/style_instrument.py --preset tiny --seeds 30 --out $(QWORK)/bench/style_instrument.json
+	$(BIN)/python bench/apps.py --seeds 0 1 2 --data $(QDATA) --work $(QWORK)/bench
+	$(BIN)/python bench/cluster.py --parts make local slurm stages --work $(QWORK)/cluster
+	$(BIN)/python bench/busy.py --work $(QWORK)/busy
+	$(BIN)/python bench/busy.py --work $(QWORK)/busy --competitors 2
+	$(BIN)/python bench/omp_steps.py --data $(QDATA) --work $(QWORK)/omp_steps
+	$(BIN)/python bench/real.py --work $(QWORK)/real
+	$(BIN)/python bench/real.py --work $(QWORK)/real --sets fountain_p11 --megapixels 12
+	$(BIN)/python bench/sfm.py --seeds 0 1 2 --data $(QDATA) --work $(QWORK)/sfm --variants \
 		repeat_threshold=0+pixel_scale=1+min_num_matches=15+min_pose_inliers=30 default
-	$(BIN)/python bench/real.py --work $(WORK)/real --sfm-only \
+	$(BIN)/python bench/real.py --work $(QWORK)/real --sfm-only \
 		repeat_threshold=0+pixel_scale=1+min_num_matches=15+min_pose_inliers=30 default
-	$(BIN)/python bench/reconstruct.py --parts variants --seeds 0 --data $(DATA) --work $(WORK)/knee \
+	$(BIN)/python bench/reconstruct.py --parts variants --seeds 0 --data $(QDATA) --work $(QWORK)/knee \
 		--variant cap12k:max_gaussians=12000 --variant cap17k:max_gaussians=17000
-	$(BIN)/python bench/reconstruct.py --parts variants --seeds 1 2 --data $(DATA) --work $(WORK)/knee \
+	$(BIN)/python bench/reconstruct.py --parts variants --seeds 1 2 --data $(QDATA) --work $(QWORK)/knee \
 		--variant rule2700:gaussians_per_mpx=2700
-	$(BIN)/python bench/real.py --work $(WORK)/real --sets herzjesu_p8 --set reconstruct.gaussians_per_mpx=2700
-	$(BIN)/python bench/reconstruct.py --parts variants --seeds 0 1 2 --data $(DATA) --work $(WORK)/appearance \
+	$(BIN)/python bench/real.py --work $(QWORK)/real --sets herzjesu_p8 --set reconstruct.gaussians_per_mpx=2700
+	$(BIN)/python bench/reconstruct.py --parts variants --seeds 0 1 2 --data $(QDATA) --work $(QWORK)/appearance \
 		--variant delta:appearance=delta-sh,color_map=false --variant shading:appearance=shading,color_map=false
-	$(BIN)/python bench/reconstruct.py --parts photos --seeds 0 --data $(DATA) --work $(WORK)/appearance \
-		--artifact 0:$$(ls $(WORK)/appearance/variants/delta/bench_s0/reconstruct/*.h5 | head -1)
+	$(BIN)/python bench/reconstruct.py --parts photos --seeds 0 --data $(QDATA) --work $(QWORK)/appearance \
+		--artifact "0:$$(ls $(QWORK)/appearance/variants/delta/bench_s0/reconstruct/*.h5 | head -1)"
 
 # the accuracy instrument (issue 20): ACC_SEEDS seeds of the `small` preset, every
 # variant, ceilings, cluster-bootstrap CIs; dev = the first half of the seeds, test
@@ -109,10 +129,10 @@ bench: setup
 ACC_SEEDS ?= 0-17
 bench-accuracy: setup
 	$(BIN)/python bench/accuracy.py --preset small --seeds $(ACC_SEEDS) \
-	  --data $(DATA)/accuracy --work $(WORK)/accuracy --plot docs/img/speed_vs_miou.png
-	$(BIN)/python bench/select3d.py --seeds 0-8 --data $(DATA)/accuracy --work $(WORK)/accuracy
-	$(BIN)/python bench/select3d.py --seeds 9-17 --data $(DATA)/accuracy --work $(WORK)/accuracy
-	$(BIN)/python bench/style_seeds.py --seeds $(ACC_SEEDS) --data $(DATA)/accuracy --work $(WORK)/accuracy
+	  --data $(QDATA)/accuracy --work $(QWORK)/accuracy --plot docs/img/speed_vs_miou.png
+	$(BIN)/python bench/select3d.py --seeds 0-8 --data $(QDATA)/accuracy --work $(QWORK)/accuracy
+	$(BIN)/python bench/select3d.py --seeds 9-17 --data $(QDATA)/accuracy --work $(QWORK)/accuracy
+	$(BIN)/python bench/style_seeds.py --seeds $(ACC_SEEDS) --data $(QDATA)/accuracy --work $(QWORK)/accuracy
 
 # threads per scene job: the cores shared among make's parallel jobs (-jN; a bare -j
 # counts as one job per core), at least one. OpenMP teams on oversubscribed cores
@@ -125,16 +145,17 @@ THREADS ?= $(shell n=$$(( $(NPROC) / $(JOBS) )); [ $$n -ge 1 ] && echo $$n || ec
 # scene writes $(WORK)/<scene>/FAILED (with its log's path) and the others go on
 all: $(SETUP)
 	-@$(MAKE) --no-print-directory -k scenes
-	@$(PTOVS) table --data $(DATA) --out $(WORK)/table.md --strict
+	@$(PTOVS) table --data $(QDATA) --out $(QWORK)/table.md --strict
 
 scenes: $(SCENES)
 $(SCENES): $(SETUP)
-	@mkdir -p $(WORK)/$@ && rm -f $(WORK)/$@/FAILED
+	@mkdir -p $(call q,$(WORK)/$@) && rm -f $(call q,$(WORK)/$@/FAILED)
 	@for s in $(STAGES); do \
-	  OMP_NUM_THREADS=$(THREADS) $(PTOVS) -q $$s --scene $@ --data $(DATA)/$@ >> $(WORK)/$@/run.log 2>&1 || \
-	  { echo "$$s failed; see $(WORK)/$@/run.log" | tee $(WORK)/$@/FAILED; exit 1; }; \
+	  OMP_NUM_THREADS=$(THREADS) $(PTOVS) -q $$s --scene $(call q,$@) --data $(call q,$(DATA)/$@) \
+	    >> $(call q,$(WORK)/$@/run.log) 2>&1 || \
+	  { echo "$$s failed; see "$(call q,$(WORK)/$@/run.log) | tee $(call q,$(WORK)/$@/FAILED); exit 1; }; \
 	done
-	@echo "$@: every stage done"
+	@echo $(call q,$@: every stage done)
 
 # the same batch through Snakemake (extra [cluster]; workflow/Snakefile): PROFILE=local
 # on this machine's cores, PROFILE=slurm on a cluster (partition and account: edit
@@ -143,18 +164,19 @@ $(SCENES): $(SETUP)
 PROFILE  ?= local
 SMK_ARGS ?=
 cluster: $(SETUP)
-	$(BIN)/python -m snakemake -s $(ROOT)/workflow/Snakefile --profile $(ROOT)/workflow/profiles/$(PROFILE) \
+	$(BIN)/python -m snakemake -s $(call q,$(ROOT)/workflow/Snakefile) \
+	  --profile $(call q,$(ROOT)/workflow/profiles/$(PROFILE)) \
 	  $(if $(filter local,$(PROFILE)),--cores $(NPROC)) $(SMK_ARGS) \
-	  --config data=$(DATA) work=$(WORK) config=$(CONFIG)
+	  --config data=$(QDATA) work=$(QWORK) config=$(call q,$(CONFIG))
 
 table: $(SETUP)
-	@$(PTOVS) table --data $(DATA) --out $(WORK)/table.md
+	@$(PTOVS) table --data $(QDATA) --out $(QWORK)/table.md
 
 status: $(SETUP)
-	@for sc in $(SCENES); do $(PTOVS) status --scene $$sc --data $(DATA)/$$sc; done
+	@for sc in $(SCENES); do $(PTOVS) status --scene "$$sc" --data $(QDATA)/"$$sc"; done
 
 clean-work:
-	rm -rf $(WORK)
+	rm -rf $(QWORK)
 
 # `make print-STAGES`, `make print-SCENES DATA=...`: what a variable holds
 print-%:

@@ -18,7 +18,16 @@ from pathlib import Path
 import pytest
 
 from conftest import copy_work
-from ptovs.pipeline import PIPELINE, RESOURCES, rule_name, scene_folders
+from ptovs.pipeline import (
+    PIPELINE,
+    RESOURCES,
+    SCENE_NAME,
+    SceneNameError,
+    check_scene_names,
+    is_scene_name,
+    rule_name,
+    scene_folders,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 SNAKEFILE = ROOT / "workflow" / "Snakefile"
@@ -87,6 +96,128 @@ def test_workflow_refuses_a_missing_data_folder(tmp_path):
     assert "no scene folders under" in proc.stdout + proc.stderr
     proc = snakemake(tmp_path, "-n", "--cores", "1")
     assert "--config data=DIR" in proc.stdout + proc.stderr
+
+
+# ------------------------------------------------ scene names into a shell --
+
+# the names in use (tests, README, bench, PT-OVS / PhotoTourism, real sets)
+NORMAL = ["tiny_s0", "bench_s1", "small_s17", "broken", "fountain_p11", "herzjesu_p8",
+          "brandenburg_gate", "notre_dame_front_facade", "trevi_fountain", "Scene.v2-b"]  # fmt: skip
+# folder names that ran a command when a driver put them in a shell unquoted
+HOSTILE = ["x;touch INJECTED;", "$(touch INJECTED2)", "`touch INJECTED3`",
+           "a b", "it's", 'say "hi"', "new\nline", "-rf"]  # fmt: skip
+
+
+def hostile_data(root: Path) -> Path:
+    """A data folder with a normal scene and every HOSTILE name as a folder."""
+    data = root / "data"
+    for name in ("tiny_s0", "label", ".hidden", *HOSTILE):
+        (data / name).mkdir(parents=True)
+    return data
+
+
+def assert_nothing_injected(*folders: Path) -> None:
+    for folder in (*folders, ROOT, Path.cwd()):
+        assert not list(folder.glob("INJECTED*")), folder
+    for folder in folders:
+        assert not list(folder.rglob("INJECTED*")), folder
+
+
+def assert_refused(
+    output: str, names: list[str], fix: str = "rename the folder"
+) -> None:
+    assert "not allowed" in output and fix in output, output
+    assert "letters, digits, '.', '_' and '-'" in output, output
+    for name in names:
+        assert repr(name) in output, (name, output)
+
+
+def test_scene_name_pattern_admits_the_names_in_use_and_no_shell_syntax(tmp_path):
+    for name in NORMAL:
+        assert is_scene_name(name), name
+        assert re.fullmatch(SCENE_NAME, name), name
+    for name in [*HOSTILE, "", ".", "..", ".hidden", "a/b", "-", "_x", "caf\u00e9", "a\n",
+                 "a\x00b", "tab\tx", "x|y", "x&y", "x>y", "x*", "~x", "{scene}"]:  # fmt: skip
+        assert not is_scene_name(name), name
+    assert check_scene_names(NORMAL, "here") == NORMAL
+    with pytest.raises(SceneNameError, match="not allowed in here"):
+        check_scene_names(["ok", "x;y"], "here")
+    data = tmp_path / "data"
+    for name in NORMAL:
+        (data / name).mkdir(parents=True)
+    assert [p.name for p in scene_folders(data)] == sorted(NORMAL)
+
+
+def test_workflow_refuses_scene_names_a_shell_would_run(tmp_path):
+    """A scene folder (or a --config scenes= name) that is not a SCENE_NAME stops
+    the workflow before any job, with the names and the fix; nothing runs. A real
+    run (not -n): had a job started, `true ARGS` would have run the injection."""
+    data = hostile_data(tmp_path)
+    run = tmp_path / "run"
+    run.mkdir()
+    work = tmp_path / "work"
+    proc = snakemake(run, "--cores", "1", "--config", f"data={data}", f"work={work}",
+                     "ptovs=true")  # fmt: skip
+    assert proc.returncode != 0, proc.stdout
+    assert_refused(proc.stdout + proc.stderr, HOSTILE)
+    assert "WorkflowError" in proc.stdout + proc.stderr
+    good = tmp_path / "good"
+    (good / "tiny_s0").mkdir(parents=True)
+    given = "tiny_s0 x;touch INJECTED; $(touch INJECTED2) `touch INJECTED3`"
+    proc = snakemake(run, "--cores", "1", "--config", f"data={good}", f"work={work}",
+                     "ptovs=true", f"scenes={given}")  # fmt: skip
+    assert proc.returncode != 0, proc.stdout
+    assert_refused(proc.stdout + proc.stderr, ["x;touch", "$(touch", "`touch"],
+                   fix="give other names")  # fmt: skip
+    assert not work.exists() and not (run / "tiny_s0").exists()
+    assert_nothing_injected(tmp_path, data, run)
+
+
+def test_make_refuses_scene_names_a_shell_would_run(tmp_path):
+    """`make all` (and print-SCENES, and the stdlib lister it calls) over the same
+    folder: refused at parse time with the message; no recipe runs, nothing made."""
+    data = hostile_data(tmp_path)
+    work = tmp_path / "work"
+    for goal in ("all", "print-SCENES"):
+        made = subprocess.run(["make", "-s", goal, f"DATA={data}", f"WORK={work}", "SETUP=",
+                               "PTOVS_BIN=true"], cwd=ROOT, capture_output=True,
+                              text=True)  # fmt: skip
+        assert made.returncode != 0, made.stdout
+        assert made.stdout == "", made.stdout
+        assert_refused(made.stderr, HOSTILE)
+        assert "nothing was run" in made.stderr, made.stderr
+    given = subprocess.run(["make", "-s", "all", "SCENES=tiny_s0 x;touch INJECTED;",
+                            f"DATA={tmp_path / 'none'}", f"WORK={work}", "SETUP=",
+                            "PTOVS_BIN=true"], cwd=ROOT, capture_output=True,
+                           text=True)  # fmt: skip
+    assert given.returncode != 0, given.stdout
+    assert_refused(given.stderr, ["x;touch"], fix="give other names")
+    stdlib = subprocess.run(  # the system Python, no venv: what make runs
+        ["python3", "-m", "ptovs.pipeline", "scenes", str(data)],
+        env={**os.environ, "PYTHONPATH": str(ROOT / "src")}, capture_output=True,
+        text=True,
+    )  # fmt: skip
+    assert stdlib.returncode == 3 and stdlib.stdout == ""
+    assert_refused(stdlib.stderr, HOSTILE)
+    assert not work.exists()
+    assert_nothing_injected(tmp_path, data)
+
+
+def test_drivers_admit_the_names_in_use(tmp_path):
+    """make's scene list and the workflow's wildcard constraint take every NORMAL
+    name: one job chain per scene in a dry run."""
+    data = tmp_path / "data"
+    for name in NORMAL:
+        (data / name).mkdir(parents=True)
+    made = subprocess.run(["make", "-s", "print-SCENES", f"DATA={data}"], cwd=ROOT,
+                          capture_output=True, text=True, check=True)  # fmt: skip
+    assert made.stdout.split() == sorted(NORMAL)
+    proc = snakemake(tmp_path, "-n", "--cores", "1", "--config", f"data={data}",
+                     f"work={tmp_path / 'work'}")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    out = proc.stdout + proc.stderr
+    for name in NORMAL:
+        assert out.count(f"wildcards: scene={name}\n") == len(PIPELINE), name
 
 
 @pytest.fixture(scope="module")
