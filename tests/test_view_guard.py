@@ -54,7 +54,7 @@ def test_clean_relpath_refuses_everything_but_plain_paths():
         assert clean_relpath(raw) == want
     for raw in ["..", "../etc/passwd", "assets/../../x", "%2e%2e/x", "..%2fx",
                 "%252e%252e/x", "a//b", "/etc/passwd", "a\\..\\b", "a%5c..%5cb",
-                "./index.html", "a/./b", "index.html%00", "a\x00b", "a\nb", "a/"]:  # fmt: skip
+                "./index.html", "a/./b", "index.html%00", "%c0%ae%c0%ae/x", "a\x00b", "a\nb", "a/"]:  # fmt: skip
         assert clean_relpath(raw) is None, raw
 
 
@@ -129,6 +129,8 @@ TRAVERSALS = [
     "/{t}/" + "..\\" * 20 + "{fb}",
     "/{t}/assets/" + "..%5c" * 20 + "{f5}",
     "/{t}//{f}",
+    "/{t}/" + "%c0%ae%c0%ae/" * 20 + "{f}",
+    "/{t}/" + "%e0%80%ae%e0%80%ae/" * 20 + "{f}",
     "//{f}",
     "/{t}/./index.html",
     "/{t}/index.html%00.png",

@@ -366,7 +366,10 @@ def _camera_of(client_camera, width: int) -> Camera:
     client's aspect and fov are clamped (a page sets them)."""
     from viser import transforms as tf
 
-    aspect = float(client_camera.aspect)
+    try:  # a page that reports a zero-sized canvas has no aspect
+        aspect = float(client_camera.aspect)
+    except (ZeroDivisionError, ValueError, TypeError):
+        aspect = 4 / 3
     aspect = min(max(aspect, 0.25), 4.0) if np.isfinite(aspect) else 4 / 3
     height = max(8, round(width / aspect))
     fov = float(client_camera.fov)

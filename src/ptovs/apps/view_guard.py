@@ -34,6 +34,7 @@ import secrets
 import socket
 import threading
 import urllib.parse
+from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -119,7 +120,10 @@ def clean_relpath(raw: str) -> str | None:
     """The request path's part to look up (after the token), or None when it is
     not a plain relative path: percent-decoded once, then no `%` left, no
     backslash, NUL or control character, no empty, `.` or `..` segment."""
-    path = urllib.parse.unquote(raw, errors="strict")
+    try:
+        path = urllib.parse.unquote(raw, errors="strict")
+    except UnicodeDecodeError:  # e.g. an overlong UTF-8 dot (%c0%ae)
+        return None
     if any(c in path for c in "%\\") or any(ord(c) < 32 or ord(c) == 127 for c in path):
         return None
     if path == "":
@@ -202,19 +206,24 @@ class Guard:
         self.hosts = {f"{name}:{self.port}" for name in _host_names(host)}
         self.max_clients = max_clients
         self.open = 0
-        self.refused: list[str] = []  # why, for each refusal (tests read it)
+        self.refused: deque[str] = deque(maxlen=200)  # the latest refusals' reasons
+        self.refusals = 0  # all of them
         self._lock = threading.Lock()
         self._cache: dict[tuple[str, bool], bytes] = {}
         self.installed = False  # set when viser's server was built through us
+
+    def note(self, why: str) -> None:
+        """Count a refusal and keep its reason (the latest 200)."""
+        with self._lock:
+            self.refused.append(why)
+            self.refusals += 1
 
     # ------------------------------------------------------------------ HTTP --
     def _refuse(self, status: int, why: str):
         from websockets.datastructures import Headers
         from websockets.http11 import Response
 
-        with self._lock:
-            self.refused.append(why)
-            del self.refused[:-100]
+        self.note(why)
         body = f"{status} {http.HTTPStatus(status).phrase}\n".encode()
         headers = Headers(
             {
@@ -264,11 +273,7 @@ class Guard:
             if not ok or rest is not None:
                 return self._refuse(403, "websocket without the token")
             with self._lock:
-                if self.open >= self.max_clients:
-                    self.refused.append("too many clients")
-                    full = True
-                else:
-                    full = False
+                full = self.open >= self.max_clients
             if full:
                 return self._refuse(503, "too many clients")
             return None
@@ -288,10 +293,7 @@ class Guard:
                 }
             )
             return Response(302, "Found", headers, b"")
-        try:
-            rel = clean_relpath(rest)
-        except UnicodeDecodeError:
-            rel = None
+        rel = clean_relpath(rest)
         if rel is None or rel not in self.files:
             return self._refuse(404, f"not served: {rest[:80]!r}")
         return self._file(rel, "gzip" in self._header(request, "Accept-Encoding"))
@@ -369,8 +371,7 @@ class _CheckedConnection:
         from websockets.exceptions import ConnectionClosedError
         from websockets.frames import Close
 
-        with self._guard._lock:
-            self._guard.refused.append(why)
+        self._guard.note(why)
         await self._connection.close(code, why[:120])
         raise ConnectionClosedError(Close(code, why[:120]), None)
 
@@ -390,8 +391,7 @@ class _CheckedConnection:
                 return raw
             if type(message).__name__ in ALLOWED_MESSAGES:
                 await self._close(1008, why)
-            with self._guard._lock:  # an unneeded kind: dropped, connection kept
-                self._guard.refused.append(why)
+            self._guard.note(why)  # an unneeded kind: dropped, connection kept
 
 
 _serve_lock = threading.Lock()
