@@ -62,6 +62,11 @@ class QueryConfig:
     """Majority-filter window (0 or 1: off)."""
     majority_exact: bool = False
     """Replicate the authors' window, which never counts the last row and column."""
+    filter_ref: float = 0.0
+    """The image short side (px) at which `smooth_kernel` and `majority` are given;
+    both scale with each image's short side (the majority window to the nearest
+    odd size). 340 = the authors' PT-OVS photos at r = 2, where their pixel values
+    hold exactly. 0 = fixed pixel sizes whatever the image."""
     min_alpha: float = 0.5
     """Pixels where the field's accumulated opacity is below this score 0: no
     surface there, so the rendered code (a near-zero blend) means nothing. The
@@ -87,6 +92,7 @@ class QueryConfig:
             threshold_mode=self.threshold_mode,
             majority=self.majority,
             majority_exact=self.majority_exact,
+            filter_ref=self.filter_ref,
         )
 
 

@@ -334,6 +334,20 @@ class QuerySettings:
     threshold_mode: str = "relative"
     majority: int = 7
     majority_exact: bool = False
+    filter_ref: float = 0.0  # short side the two sizes are given at (0: fixed px)
+
+    def filter_sizes(self, height: int, width: int) -> tuple[int, int]:
+        """(box kernel, majority window) in pixels for an image of this size: the
+        configured sizes, scaled by short side / filter_ref when filter_ref > 0
+        (the window to the nearest odd size; 1 = off)."""
+        if self.filter_ref <= 0:
+            return int(self.smooth_kernel), int(self.majority)
+        f = min(height, width) / self.filter_ref
+        kernel = max(1, round(self.smooth_kernel * f)) if self.smooth_kernel > 1 else 1
+        maj = 1
+        if self.majority > 1:
+            maj = max(1, 2 * round((self.majority * f - 1) / 2) + 1)
+        return kernel, maj
 
 
 @dataclass
@@ -384,11 +398,12 @@ def finish(
     elif b is not None:
         damp = b[0].numpy().astype(np.float32)
     fused = fuse(s, settings.fusion).numpy()
-    sm = np.stack([smooth(m, settings.smooth_kernel, damp) for m in fused])
+    kernel, window = settings.filter_sizes(*fused.shape[-2:])
+    sm = np.stack([smooth(m, kernel, damp) for m in fused])
     peaks = sm.reshape(len(sm), -1).max(1)
     level = int(np.argmax(peaks))
     mask = threshold(sm[level], settings.threshold, settings.threshold_mode)
-    mask = majority(mask, settings.majority, settings.majority_exact)
+    mask = majority(mask, window, settings.majority_exact)
     if not np.all(np.isfinite(sm)):
         raise FloatingPointError("query: a smoothed score map is not finite")
     return QueryResult(sm, level, float(peaks[level]), mask)
