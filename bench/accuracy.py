@@ -101,15 +101,25 @@ CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
         )
     },
     "oracle": ("male", {}),  # + the clean features' import_dir (`oracle_features`)
+    # Table 3 rows with perfect segments: the synthetic truth's part masks
+    # (`segmenter = "truth"`: the paper's own SAM setting as an upper bound)
+    **{
+        f"{v}-truth": (v, {"extract-features": ["segmenter=truth"]})
+        for v in ("male", "langsplat", "no-multi-appearance")
+    },
 }
 # measured only when asked for (--labels): candidates for issue 22's fixes, kept out
 # of the default run so that `make bench-accuracy` stays what the report describes
 OPTIONAL_LABELS = ("no-uncertainty-ae", "lift-codes")
 CHAIN_LABELS.update({v: (v, {}) for v in OPTIONAL_LABELS})
-FEATURE_LABELS = ("2d", "2d-ae")
+FEATURE_LABELS = ("2d", "2d-ae", "2d-nosmooth", "2d-best", "2d-truth")
+TRUTH_SEGMENTS = ["images=orig", "segmenter=truth"]  # extract-features, for 2d-truth
 ALL_LABELS = ("male", *FEATURE_LABELS, *(k for k in CHAIN_LABELS if k != "male"))
 LABELS = tuple(k for k in ALL_LABELS if k not in OPTIONAL_LABELS)  # the default run
 CHAIN_LOSS = (  # the chain from the photo's features to the fused field
+    "2d-truth",
+    "2d-best",
+    "2d-nosmooth",
     "2d",
     "2d-ae",
     "slot-orig",
@@ -185,14 +195,18 @@ def _label_chain(ref, scene: Path, work: Path, label: str) -> tuple[str, dict]:
 def label_key(ctx, ref, scene: Path, work: Path, label: str) -> str:
     """The artifact key of what `label` measures under today's code and config:
     a result stored under another key is stale."""
+    from ptovs.config import canonical_json
     from ptovs.stage import Chain
     from ptovs.variants import variant_sets
 
     if label in FEATURE_LABELS:
-        keys = [Chain(ctx, ref, {"extract-features": ["images=orig"]})
-                .key("extract-features")]  # fmt: skip
+        items = TRUTH_SEGMENTS if label == "2d-truth" else ["images=orig"]
+        keys = [Chain(ctx, ref, {"extract-features": items}).key("extract-features")]
         if label == "2d-ae":
             keys.append(Chain(ctx, ref).key("train-ae"))
+        if label != "2d-best":  # the query's knobs decide the mask
+            query = canonical_json(Chain(ctx, ref).config("query"))
+            keys.append(hashlib.sha256(query.encode()).hexdigest()[:16])
         return "+".join(keys)
     variant, sets = _label_chain(ref, scene, work, label)
     return Chain(ctx, ref, variant_sets(variant, sets)).key("evaluate")
@@ -235,9 +249,36 @@ def oracle_features(ctx, ref, scene: Path, work: Path) -> Path:
     return folder
 
 
+def best_union(labels: np.ndarray, gt: np.ndarray) -> tuple[float, np.ndarray]:
+    """(IoU, mask) of the union of `labels`' segments (ids >= 0) that best matches
+    `gt`: segments taken in order of their share inside gt, the best prefix (for
+    IoU the optimum is such a prefix)."""
+    lab = labels.ravel().astype(np.int64)
+    ok = lab >= 0
+    n = int(lab.max()) + 1 if ok.any() else 0
+    if n == 0:
+        return 0.0, np.zeros(labels.shape, bool)
+    g = gt.ravel().astype(np.float64)
+    area = np.bincount(lab[ok], minlength=n).astype(np.float64)
+    inside = np.bincount(lab[ok], weights=g[ok], minlength=n)
+    order = np.argsort(-(inside / np.maximum(area, 1)), kind="stable")
+    inter = np.cumsum(inside[order])
+    iou = inter / np.maximum(g.sum() + np.cumsum(area[order]) - inter, 1)
+    k = int(np.argmax(iou))
+    keep = np.zeros(n, bool)
+    keep[order[: k + 1]] = True
+    return float(iou[k]), (ok & keep[np.where(ok, lab, 0)]).reshape(labels.shape)
+
+
 def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
-    """The 2-D ceiling ("2d") and the same through the full method's AE ("2d-ae"),
-    whichever `labels` asks for."""
+    """The 2-D labels `labels` asks for, on the evaluation photos' own segment
+    features (no field): "2d" (the pipeline's relevancy and mask), "2d-ae" (the
+    features through the full method's AE), "2d-nosmooth" (2d without the
+    query's mean and majority filters), "2d-truth" (2d on the truth part masks'
+    features), "2d-best" (the best union of the pipeline's segments per query,
+    best level: no classifier error)."""
+    import dataclasses
+
     import torch
 
     from ptovs.encoders.synthetic import SyntheticEncoder
@@ -250,6 +291,10 @@ def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
 
     fe, _ = _build(Chain(ctx, ref, {"extract-features": ["images=orig"]}),
                    "extract-features")  # fmt: skip
+    fe_truth = None
+    if "2d-truth" in labels:
+        fe_truth, _ = _build(Chain(ctx, ref, {"extract-features": TRUTH_SEGMENTS}),
+                             "extract-features")  # fmt: skip
     male = Chain(ctx, ref)
     ae = None
     if "2d-ae" in labels:
@@ -257,6 +302,7 @@ def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
         ae = load_autoencoder(ae_art).eval()
         ae_art.close()
     settings = male.config("query").settings()
+    raw = dataclasses.replace(settings, smooth_kernel=1, majority=1)
     sc = ref.load()
     queries = sorted({q for v in sc.labelled_views() for q in load_labels(sc, v)})
     phrases = list(dict.fromkeys([*queries, *CANONICAL, *BACKGROUND_PHRASES]))
@@ -265,32 +311,51 @@ def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
     canon = [idx[p] for p in CANONICAL]
     bg = [idx[p] for p in BACKGROUND_PHRASES]
     out: dict[str, list[dict]] = {lab: [] for lab in FEATURE_LABELS if lab in labels}
+
+    def dense_cos(sf: SegmentFeatures, through_ae: bool) -> torch.Tensor:
+        """[L, 1, H, W, K]: each segment's cosines with every phrase, painted."""
+        maps = []
+        for lv in range(sf.levels):
+            rows = torch.from_numpy(sf.level_table(lv).astype(np.float32))
+            if through_ae:
+                with torch.no_grad():
+                    rows = ae.decode(ae.encode(rows))
+            c = rows @ emb.float().T  # [n, K]
+            local = torch.from_numpy(sf.local(lv).astype(np.int64))
+            dense = torch.zeros((*local.shape, c.shape[1]))
+            dense[local >= 0] = c[local[local >= 0]]
+            maps.append(dense)
+        return torch.stack(maps)[:, None]
+
     for view in sc.labelled_views():
         sf = SegmentFeatures.from_view(fe[view.name], "orig")
-        cos: dict[str, list] = {lab: [] for lab in out}
-        for lv in range(sf.levels):  # per segment row, then painted per pixel
-            rows = {"2d": torch.from_numpy(sf.level_table(lv).astype(np.float32))}
-            if ae is not None:
-                with torch.no_grad():
-                    rows["2d-ae"] = ae.decode(ae.encode(rows["2d"]))
-            local = torch.from_numpy(sf.local(lv).astype(np.int64))
-            valid = local >= 0
-            for label in out:
-                c = rows[label] @ emb.float().T  # [n, K]
-                dense = torch.zeros((*local.shape, c.shape[1]))
-                dense[valid] = c[local[valid]]
-                cos[label].append(dense)
         gts = load_labels(sc, view, sf.seg.shape[1:])
         qidx = [idx[q] for q in gts]
-        for label in out:
-            stacked = torch.stack(cos[label])[:, None]  # [L, 1, H, W, K]
-            for cat, gt in gts.items():
-                if not gt.any():
-                    continue
-                r = answer(stacked, idx[cat], canon, bg, settings, qidx)
+        runs = []  # (label, cosines, settings)
+        if {"2d", "2d-nosmooth"} & set(out):
+            cos = dense_cos(sf, False)
+            runs += [(lab, cos, st) for lab, st in
+                     (("2d", settings), ("2d-nosmooth", raw)) if lab in out]  # fmt: skip
+        if "2d-ae" in out:
+            runs.append(("2d-ae", dense_cos(sf, True), settings))
+        if fe_truth is not None:
+            tf = SegmentFeatures.from_view(fe_truth[view.name], "orig")
+            runs.append(("2d-truth", dense_cos(tf, False), settings))
+        for cat, gt in gts.items():
+            if not gt.any():
+                continue
+            for label, cos, st in runs:
+                r = answer(cos, idx[cat], canon, bg, st, qidx)
                 m = pair_metrics(r.mask, gt)
                 out[label].append({"view": view.name, "query": cat, **m})
+            if "2d-best" in out:
+                best = max((best_union(sf.local(lv), gt) for lv in range(sf.levels)),
+                           key=lambda t: t[0])  # fmt: skip
+                m = pair_metrics(best[1], gt)
+                out["2d-best"].append({"view": view.name, "query": cat, **m})
     fe.close()
+    if fe_truth is not None:
+        fe_truth.close()
     return out
 
 

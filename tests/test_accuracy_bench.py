@@ -28,7 +28,7 @@ def _bench():
 def test_killed_run_resumes_without_redoing_finished_seeds(tmp_path: Path) -> None:
     data, work = tmp_path / "data", tmp_path / "work"
     cmd = [sys.executable, str(SCRIPT), "--preset", "tiny", "--seeds", "0-1",
-           "--labels", "2d", "--jobs", "1", "--config", str(ROOT / "configs/ci.toml"),
+           "--labels", "2d", "2d-best", "2d-nosmooth", "2d-truth", "--jobs", "1", "--config", str(ROOT / "configs/ci.toml"),
            "--data", str(data), "--work", str(work)]  # fmt: skip
     first = work / "results" / "tiny_s0.json"
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
@@ -51,6 +51,15 @@ def test_killed_run_resumes_without_redoing_finished_seeds(tmp_path: Path) -> No
     s1 = json.loads((work / "results" / "tiny_s1.json").read_text())
     pairs = s1["labels"]["2d"]["pairs"]
     assert pairs and all(0.0 <= p["iou"] <= 1.0 for p in pairs)
+    for lab in ("2d-best", "2d-nosmooth", "2d-truth"):  # the same pairs, other ways
+        other = s1["labels"][lab]["pairs"]
+        assert [(p["view"], p["query"]) for p in other] == [
+            (p["view"], p["query"]) for p in pairs
+        ]
+        assert all(0.0 <= p["iou"] <= 1.0 for p in other)
+    keys = {lab: s1["labels"][lab]["key"] for lab in ("2d", "2d-nosmooth", "2d-truth")}
+    assert len(set(keys.values())) == 2  # truth segments are other features
+    assert keys["2d"] == keys["2d-nosmooth"]
     assert s1["screen"]["margin"] > 0 and set(s1["hard"]) >= {p["view"] for p in pairs}
     report = (work / "accuracy.md").read_text()
     assert "### dev seeds [0]" in report and "### test seeds [1]" in report
@@ -73,7 +82,8 @@ def test_killed_run_resumes_without_redoing_finished_seeds(tmp_path: Path) -> No
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stdout + res.stderr
     again = json.loads(first.read_text())
-    assert set(again["labels"]) == {"2d"} and again["labels"]["2d"]["key"] == key
+    assert set(again["labels"]) == {"2d", "2d-best", "2d-nosmooth", "2d-truth"}
+    assert again["labels"]["2d"]["key"] == key
     assert (
         again["labels"]["2d"]["pairs"] == json.loads(both[0])["labels"]["2d"]["pairs"]
     )
@@ -116,3 +126,28 @@ def test_report_statistics_on_known_results() -> None:
     bad, total, which = acc.unanswered(results, ["male", "oracle", "langsplat"])
     assert (bad, total, which) == (1, 3, [(0, "B")])
     assert "is at least every variant's mean" in "\n".join(acc._ceiling_lines(summ))
+
+
+def test_best_union_is_the_best_subset() -> None:
+    """2d-best's union against every subset of segments (small maps)."""
+    import itertools
+
+    import numpy as np
+
+    best_union = _bench().best_union
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        n = int(rng.integers(1, 7))
+        labels = rng.integers(-1, n, (9, 11))
+        gt = rng.random((9, 11)) < rng.random()
+        iou, mask = best_union(labels, gt)
+        ids = [k for k in range(n) if (labels == k).any()]
+        brute = 0.0
+        for r in range(1, len(ids) + 1):
+            for sub in itertools.combinations(ids, r):
+                m = np.isin(labels, sub)
+                union = (m | gt).sum()
+                brute = max(brute, (m & gt).sum() / union if union else 0.0)
+        assert iou == pytest.approx(brute)
+        assert (mask & gt).sum() / max((mask | gt).sum(), 1) == pytest.approx(iou)
+        assert not mask[labels < 0].any()

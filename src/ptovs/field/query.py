@@ -62,11 +62,12 @@ class QueryConfig:
     """Majority-filter window (0 or 1: off)."""
     majority_exact: bool = False
     """Replicate the authors' window, which never counts the last row and column."""
-    filter_ref: float = 0.0
+    filter_ref: float = 680.0
     """The image short side (px) at which `smooth_kernel` and `majority` are given;
     both scale with each image's short side (the majority window to the nearest
-    odd size). 340 = the authors' PT-OVS photos at r = 2, where their pixel values
-    hold exactly. 0 = fixed pixel sizes whatever the image."""
+    odd size). 680 (chosen on the accuracy instrument's dev seeds): 20 px and 7 px
+    at 680 px, 10 and 3 at the authors' 340-px photos. 340 = the authors' pixel
+    values at their r = 2 size, exactly. 0 = fixed pixel sizes whatever the image."""
     min_alpha: float = 0.5
     """Pixels where the field's accumulated opacity is below this score 0: no
     surface there, so the rendered code (a near-zero blend) means nothing. The

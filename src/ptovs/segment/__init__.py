@@ -25,7 +25,7 @@ NO_SEGMENT = -1
 LEVEL_NAMES = ("default", "s", "m", "l")
 """LangSplat's levels: "default" pools SAM's three outputs; s/m/l = subpart/part/whole."""
 
-SEGMENTERS = ("graph", "sam")
+SEGMENTERS = ("graph", "hier", "sam")
 
 
 @dataclass
@@ -71,6 +71,10 @@ def get_segmenter(name: str, **kwargs) -> Segmenter:
         from ptovs.segment.graph import GraphSegmenter
 
         return GraphSegmenter(**kwargs)
+    if name == "hier":
+        from ptovs.segment.hier import HierSegmenter
+
+        return HierSegmenter(**kwargs)
     if name == "sam":
         from ptovs.segment.sam import SamSegmenter
 

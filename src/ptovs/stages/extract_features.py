@@ -10,8 +10,9 @@ Per train view and appearance slot `app` ∈ {orig, nov1.., self}: `seg_<app>`
 `feat_<app>` [n, D] float16 unit rows, `nseg_<app>` [L] rows per level. Root:
 `levels_json` (level names, backends, slots).
 
-Backends: segmenter "graph" (OpenCV, CPU default) or "sam" (local checkpoint,
-extra [sam]); encoder "synthetic" (the stand-in; the default on synthetic scenes)
+Backends: segmenter "hier" (nested levels from one merge hierarchy, the CPU
+default), "graph" (one Felzenszwalb pass per level), "sam" (local checkpoint,
+extra [sam]) or "truth" (a synthetic scene's part masks: the instrument's); encoder "synthetic" (the stand-in; the default on synthetic scenes)
 or "openclip" (local checkpoint, extra [clip]; the default elsewhere). Or
 `import_dir`: a LangSplat feature folder (`<id>_f.npy`, `<id>_s.npy`, renders
 `<id>_f_ma_<k>.npy`) used instead of segmenting and encoding.
@@ -44,12 +45,24 @@ VERSION = 1
 class Config:
     levels: tuple[str, ...] = ("s", "m", "l")
     """Levels, from "default", "s", "m", "l" (LangSplat's four; the paper uses s/m/l)."""
-    segmenter: Literal["graph", "sam"] = "graph"
+    segmenter: Literal["graph", "hier", "sam", "truth"] = "hier"
+    """"graph": one Felzenszwalb pass per level; "hier": nested levels cut from
+    one merge hierarchy over texture features (`ptovs.segment.hier`); "sam": a
+    local SAM checkpoint; "truth": a synthetic scene's part masks (the accuracy
+    instrument's perfect segmenter; refused elsewhere)."""
     graph_k: tuple[float, ...] = ()
     """Felzenszwalb k per level (empty: 100/300/1000/3000 for default/s/m/l)."""
     graph_sigma: float = 0.8
     graph_min_size: int = 100
     """Smallest segment at 512×384, scaled with the image area."""
+    hier_thresholds: tuple[float, ...] = ()
+    """Merge cost at which each level is cut (empty: the segmenter's defaults)."""
+    hier_texture: float = 1.0
+    """Texture window (Gaussian sigma, px at 512×384) of the hier features."""
+    hier_edge: float = 0.0
+    """Weight of a boundary's feature gradient in the hier merge cost."""
+    hier_min_size: int = 300
+    """Smallest hier segment at 512×384, scaled with the image area."""
     sam_checkpoint: str = ""
     sam_model: str = "vit_h"
     sam_points_per_side: int = 32
@@ -77,7 +90,7 @@ class Inputs:
     """Only for images = "all": originals alone depend on the photos, not the field."""
 
 
-def build_segmenter(config: Config) -> Segmenter:
+def build_segmenter(config: Config, scene_root: Path | None = None) -> Segmenter:
     levels = check_levels(config.levels)
     if config.segmenter == "graph":
         if config.graph_k and len(config.graph_k) != len(levels):
@@ -90,6 +103,26 @@ def build_segmenter(config: Config) -> Segmenter:
             sigma=config.graph_sigma,
             min_size=config.graph_min_size,
         )
+    if config.segmenter == "hier":
+        if config.hier_thresholds and len(config.hier_thresholds) != len(levels):
+            raise ValueError(
+                f"hier_thresholds needs one value per level {list(levels)}"
+            )
+        th = config.hier_thresholds
+        return get_segmenter(
+            "hier",
+            levels=levels,
+            thresholds=dict(zip(levels, th, strict=True)) if th else None,
+            texture=config.hier_texture,
+            edge=config.hier_edge,
+            min_size=config.hier_min_size,
+        )
+    if config.segmenter == "truth":
+        if scene_root is None:
+            raise ValueError("segmenter 'truth' needs the scene's folder")
+        from ptovs.segment.truth import TruthSegmenter
+
+        return TruthSegmenter(scene_root, levels)
     return get_segmenter(
         "sam",
         checkpoint=config.sam_checkpoint,
@@ -157,7 +190,7 @@ def run(
         if not folder.is_dir():
             raise FileNotFoundError(f"import_dir {folder} is not a folder")
     else:
-        segmenter = build_segmenter(config)
+        segmenter = build_segmenter(config, scene.root)
         encoder = build_encoder(config, scene.synthetic)
     for v in scene.train_views():
         if v.name in skip:
@@ -173,6 +206,8 @@ def run(
                     img = (scene.load_image(v) * 255.0 + 0.5).astype(np.uint8)
                 else:
                     img = renders[slots.index(app)]
+                if hasattr(segmenter, "select"):  # truth: this view, occluders or not
+                    segmenter.select(v.stem, app == "orig")
                 f = image_features(
                     img, segmenter, encoder, config.batch_size, config.crop_size
                 )
