@@ -31,6 +31,15 @@ at a time on two cores, one thread each), the instrument measures, on every
   2d                  2-D ceiling: the pipeline's relevancy on the raw 512-d segment
                       features of the evaluation photo itself (no field, no AE)
   2d-ae               the same features through the full method's autoencoder
+  2d-nosmooth         2d without the query's mean and majority filters
+  2d-best             the best union of the pipeline's segments per query (the
+                      segments in order of their share inside the truth mask, the
+                      best prefix, best level): no classifier error
+  2d-truth            2d on the truth part masks' features (`segmenter = "truth"`)
+  2d-old              2d as before issue 40 (graph segments, fixed 20/7 px filters)
+  male-old            the full method with those defaults
+  male-truth, langsplat-truth, no-multi-appearance-truth   Table 3 rows with the
+                      truth part masks as segments (the paper's SAM setting's bound)
   slot-orig, slot-nov1..3   the full method's field, one appearance slot alone
   no-multi-appearance, no-tum-aum, no-tum, no-aum, no-bg-filter, imglvlmax,
   pixmax, pixavg, pixweighted   Table 3 rows 1 and 6-13 (ptovs.variants)
@@ -101,6 +110,11 @@ CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
         )
     },
     "oracle": ("male", {}),  # + the clean features' import_dir (`oracle_features`)
+    # the defaults before issue 40 (one graph pass per level, fixed 20/7 px filters)
+    "male-old": (
+        "male",
+        {"extract-features": ["segmenter=graph"], "query": ["filter_ref=0"]},
+    ),
     # Table 3 rows with perfect segments: the synthetic truth's part masks
     # (`segmenter = "truth"`: the paper's own SAM setting as an upper bound)
     **{
@@ -112,7 +126,8 @@ CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
 # of the default run so that `make bench-accuracy` stays what the report describes
 OPTIONAL_LABELS = ("no-uncertainty-ae", "lift-codes")
 CHAIN_LABELS.update({v: (v, {}) for v in OPTIONAL_LABELS})
-FEATURE_LABELS = ("2d", "2d-ae", "2d-nosmooth", "2d-best", "2d-truth")
+FEATURE_LABELS = ("2d", "2d-ae", "2d-nosmooth", "2d-best", "2d-truth", "2d-old")
+OLD_SEGMENTS = ["images=orig", "segmenter=graph"]  # extract-features, for 2d-old
 TRUTH_SEGMENTS = ["images=orig", "segmenter=truth"]  # extract-features, for 2d-truth
 ALL_LABELS = ("male", *FEATURE_LABELS, *(k for k in CHAIN_LABELS if k != "male"))
 LABELS = tuple(k for k in ALL_LABELS if k not in OPTIONAL_LABELS)  # the default run
@@ -200,11 +215,13 @@ def label_key(ctx, ref, scene: Path, work: Path, label: str) -> str:
     from ptovs.variants import variant_sets
 
     if label in FEATURE_LABELS:
-        items = TRUTH_SEGMENTS if label == "2d-truth" else ["images=orig"]
+        items = {"2d-truth": TRUTH_SEGMENTS, "2d-old": OLD_SEGMENTS}.get(
+            label, ["images=orig"]
+        )
         keys = [Chain(ctx, ref, {"extract-features": items}).key("extract-features")]
         if label == "2d-ae":
             keys.append(Chain(ctx, ref).key("train-ae"))
-        if label != "2d-best":  # the query's knobs decide the mask
+        if label not in ("2d-best", "2d-old"):  # the query's knobs decide the mask
             query = canonical_json(Chain(ctx, ref).config("query"))
             keys.append(hashlib.sha256(query.encode()).hexdigest()[:16])
         return "+".join(keys)
@@ -291,6 +308,10 @@ def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
 
     fe, _ = _build(Chain(ctx, ref, {"extract-features": ["images=orig"]}),
                    "extract-features")  # fmt: skip
+    fe_old = None
+    if "2d-old" in labels:
+        fe_old, _ = _build(Chain(ctx, ref, {"extract-features": OLD_SEGMENTS}),
+                           "extract-features")  # fmt: skip
     fe_truth = None
     if "2d-truth" in labels:
         fe_truth, _ = _build(Chain(ctx, ref, {"extract-features": TRUTH_SEGMENTS}),
@@ -303,6 +324,7 @@ def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
         ae_art.close()
     settings = male.config("query").settings()
     raw = dataclasses.replace(settings, smooth_kernel=1, majority=1)
+    fixed = dataclasses.replace(settings, smooth_kernel=20, majority=7, filter_ref=0.0)
     sc = ref.load()
     queries = sorted({q for v in sc.labelled_views() for q in load_labels(sc, v)})
     phrases = list(dict.fromkeys([*queries, *CANONICAL, *BACKGROUND_PHRASES]))
@@ -341,6 +363,9 @@ def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
         if fe_truth is not None:
             tf = SegmentFeatures.from_view(fe_truth[view.name], "orig")
             runs.append(("2d-truth", dense_cos(tf, False), settings))
+        if fe_old is not None:
+            of = SegmentFeatures.from_view(fe_old[view.name], "orig")
+            runs.append(("2d-old", dense_cos(of, False), fixed))
         for cat, gt in gts.items():
             if not gt.any():
                 continue
@@ -354,8 +379,9 @@ def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
                 m = pair_metrics(best[1], gt)
                 out["2d-best"].append({"view": view.name, "query": cat, **m})
     fe.close()
-    if fe_truth is not None:
-        fe_truth.close()
+    for art in (fe_truth, fe_old):
+        if art is not None:
+            art.close()
     return out
 
 

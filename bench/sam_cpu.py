@@ -111,7 +111,7 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("--repeat", type=int, default=1)
-    ap.add_argument("--check", nargs="+", default=["vit_b:8:0", "vit_b:16:1"],
+    ap.add_argument("--check", nargs="+", default=["vit_b:8:0", "vit_b:16:0"],
                     help="whole runs to check the sum against (model:points:layers)")  # fmt: skip
     ap.add_argument("--out", type=Path, default=Path("work/sam_cpu.json"))
     args = ap.parse_args()
@@ -133,6 +133,8 @@ def main() -> None:
         res["check"].append({"model": kind, "points": int(p), "crop_layers": int(c),
                              "measured_s": got, "predicted_s": want})  # fmt: skip
         print(f"whole {item}: {got:.2f} s (predicted {want:.2f} s)", flush=True)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(res, indent=1))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(res, indent=1))
     print("\n| model | encoder pass (s) | " + " | ".join(

@@ -3,6 +3,7 @@
     python bench/segments.py --seeds 0-8                    # dev: choose
     python bench/segments.py --seeds 9-17                   # test: report
     python bench/segments.py --seeds 0-8 --candidates graph hier --filters paper image
+    python bench/segments.py --seeds 0-8 --candidates sweep  # every candidate measured
 
 For every evaluation photo of each `small` seed (the accuracy instrument's scenes,
 `data/accuracy`), each candidate segmenter's levels are measured against the truth
@@ -72,7 +73,69 @@ def candidate(name: str, scene: Path):
     return get_segmenter(name)
 
 
-EXTRA: dict = {}  # bench-only candidates: name -> constructor
+def _hier(texture: float, edge: float, cuts: tuple, min_size: int = 100):
+    from ptovs.segment.hier import HierSegmenter
+
+    th = dict(zip(("s", "m", "l"), map(float, cuts), strict=True))
+    return lambda: HierSegmenter(
+        texture=texture, edge=edge, thresholds=th, min_size=min_size
+    )
+
+
+def _sweep() -> dict:
+    """The candidates issue 40 measured on the dev seeds (`--candidates sweep`):
+    hier over texture window, edge weight, cuts and speck size; graph with finer
+    k; `tex`: Felzenszwalb on the texture features alone."""
+    from ptovs.segment.graph import GraphSegmenter
+    from ptovs.segment.hier import texture_features
+
+    out = {}
+    for tex in (1.0, 2.5):
+        for edge in (0.0, 1.0):
+            for cuts in ((4, 10, 25), (8, 20, 45), (12, 30, 70)):
+                out[f"h_t{tex}_e{edge}_{cuts[0]}-{cuts[1]}-{cuts[2]}"] = _hier(
+                    tex, edge, cuts
+                )
+    out["h_t0.5_e0.0_12-30-70"] = _hier(0.5, 0.0, (12, 30, 70))
+    out["h_t1.0_e0.0_16-40-90"] = _hier(1.0, 0.0, (16, 40, 90))
+    for ms in (200, 300, 600):
+        out[f"h_t1.0_e0.0_12-30-70_ms{ms}"] = _hier(1.0, 0.0, (12, 30, 70), ms)
+    out["h_t1.0_e0.0_8-20-45_ms300"] = _hier(1.0, 0.0, (8, 20, 45), 300)
+    out["h_t1.0_e0.0_12-30-50_ms300"] = _hier(1.0, 0.0, (12, 30, 50), 300)
+    out["graph_fine"] = lambda: GraphSegmenter(k={"s": 100.0, "m": 300.0, "l": 1000.0})
+
+    class Tex:  # Felzenszwalb on the texture features, no hierarchy
+        name, levels = "tex", ("s", "m", "l")
+
+        def segment(self, image):
+            import cv2
+
+            from ptovs.segment import Level
+
+            h, w = image.shape[:2]
+            f = (h * w / (512 * 384)) ** 0.5
+            feat = texture_features(image, 2.0 * max(f, 0.35))
+            ms = max(4, round(100 * h * w / (512 * 384)))
+            out = []
+            for k in (100.0, 300.0, 1000.0):
+                gs = cv2.ximgproc.segmentation.createGraphSegmentation(
+                    sigma=0.0, k=k, min_size=ms
+                )
+                lab = gs.processImage(feat).astype(np.int32)
+                out.append(
+                    Level(
+                        np.unique(lab, return_inverse=True)[1]
+                        .reshape(h, w)
+                        .astype(np.int32)
+                    )
+                )
+            return out
+
+    out["tex2"] = Tex
+    return out
+
+
+EXTRA: dict = {}  # bench-only candidates: name -> constructor (filled by _sweep)
 
 
 def seed_rows(scene: Path, config: Path, candidates: list[str], filters: list[str]):
@@ -217,6 +280,10 @@ def main() -> None:
     ap.add_argument("--filters", nargs="+", default=list(FILTERS))
     ap.add_argument("--report-only", action="store_true")
     args = ap.parse_args()
+    if "sweep" in args.candidates:
+        EXTRA.update(_sweep())
+        i = args.candidates.index("sweep")
+        args.candidates[i : i + 1] = ["graph", "hier", "truth", *EXTRA]
     from ptovs.artifacts import write_atomic
     from ptovs.synthetic import generate_scene
 

@@ -164,3 +164,19 @@ def test_filters_follow_the_image_and_reproduce_the_authors_at_340_px():
     assert not np.array_equal(
         finish(s2, b2, fixed).smoothed, finish(s2, b2, scaled).smoothed
     )
+
+
+def test_the_stage_builds_each_segmenter_and_refuses_truth_without_truth(tmp_path):
+    from ptovs.errors import InputError
+    from ptovs.segment.graph import GraphSegmenter
+    from ptovs.segment.hier import HierSegmenter
+    from ptovs.stages.extract_features import Config, build_segmenter
+
+    assert isinstance(build_segmenter(Config()), HierSegmenter)  # the default
+    assert isinstance(build_segmenter(Config(segmenter="graph")), GraphSegmenter)
+    seg = build_segmenter(Config(hier_thresholds=(5.0, 9.0, 30.0)))
+    assert seg.thresholds["s"] == 5.0 and seg.thresholds["l"] == 30.0
+    with pytest.raises(ValueError, match="one value per level"):
+        build_segmenter(Config(hier_thresholds=(5.0,)))
+    with pytest.raises(InputError, match="synthetic scene"):
+        build_segmenter(Config(segmenter="truth"), tmp_path)
