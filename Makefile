@@ -46,8 +46,8 @@ SETUP     ?= setup
 PTOVS_BIN ?= $(BIN)/ptovs
 PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # the demo's text for select and roam (tiny, seed 0: its parts are a brick facade, a Doric
-# column, a tiled roof; with the default config "Doric Column" selects 10,779 of 23,988
-# Gaussians, 44.9 %, at relevancy score 0.173)
+# column, a tiled roof; with the default config "Doric Column" selects 607 of 24,444
+# Gaussians, 2.5 %, at relevancy score 0.477 on 2026-11-26's machine)
 DEMO_TEXT ?= Doric Column
 
 .PHONY: setup demo view test test-slurm lint format bench bench-accuracy all cluster scenes table status clean-work $(SCENES)
