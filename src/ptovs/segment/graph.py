@@ -18,6 +18,21 @@ REF_AREA = 512 * 384
 REF_MIN_SIZE = 100
 
 
+def require_ximgproc() -> None:
+    """ImportError with the fix when OpenCV's contrib modules are missing."""
+    if not hasattr(cv2, "ximgproc"):
+        raise ImportError(
+            "cv2.ximgproc is missing: install opencv-contrib-python-headless "
+            "(and not opencv-python next to it)"
+        )
+
+
+def check_image(image: np.ndarray) -> None:
+    """ValueError unless `image` is RGB uint8 [H, W, 3]."""
+    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise ValueError(f"expected uint8 [H, W, 3], got {image.dtype} {image.shape}")
+
+
 class GraphSegmenter:
     name = "graph"
 
@@ -32,17 +47,10 @@ class GraphSegmenter:
         self.k = dict(GRAPH_K, **(k or {}))
         self.sigma = float(sigma)
         self.min_size = int(min_size)
-        if not hasattr(cv2, "ximgproc"):
-            raise ImportError(
-                "cv2.ximgproc is missing: install opencv-contrib-python-headless "
-                "(and not opencv-python next to it)"
-            )
+        require_ximgproc()
 
     def segment(self, image: np.ndarray) -> list[Level]:
-        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-            raise ValueError(
-                f"expected uint8 [H, W, 3], got {image.dtype} {image.shape}"
-            )
+        check_image(image)
         h, w = image.shape[:2]
         min_size = max(4, round(self.min_size * h * w / REF_AREA))
         img = np.ascontiguousarray(image)

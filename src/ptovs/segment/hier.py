@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 
 from ptovs.segment import Level, check_levels
+from ptovs.segment.graph import check_image, require_ximgproc
 
 REF_AREA = 512 * 384
 HIER_THRESHOLDS = {"default": 20.0, "s": 8.0, "m": 20.0, "l": 45.0}  # chosen on dev
@@ -102,17 +103,10 @@ class HierSegmenter:
         self.k0 = float(k0)
         self.edge = float(edge)
         self.min_size = int(min_size)
-        if not hasattr(cv2, "ximgproc"):
-            raise ImportError(
-                "cv2.ximgproc is missing: install opencv-contrib-python-headless "
-                "(and not opencv-python next to it)"
-            )
+        require_ximgproc()
 
     def segment(self, image: np.ndarray) -> list[Level]:
-        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-            raise ValueError(
-                f"expected uint8 [H, W, 3], got {image.dtype} {image.shape}"
-            )
+        check_image(image)
         h, w = image.shape[:2]
         scale = (h * w / REF_AREA) ** 0.5
         feat = texture_features(np.ascontiguousarray(image), self.texture * scale)
