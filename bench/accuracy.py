@@ -136,6 +136,7 @@ CHAIN_LOSS = (  # the chain from the photo's features to the fused field
     "2d-best",
     "2d-nosmooth",
     "2d",
+    "2d-old",
     "2d-ae",
     "slot-orig",
     "slot-nov1",
