@@ -12,6 +12,8 @@ BIN    := $(VENV)/bin
 DATA   ?= data
 WORK   ?= work
 CONFIG ?= configs/default.toml
+# the real photo sets with cameras (bench/real.py's default; segment pictures)
+REAL   ?= $(ROOT)/../shared/data/real
 # $(call q,TEXT): TEXT as one single-quoted shell word, whatever it holds (paths in
 # recipes go through it: a space, quote or ; in DATA or WORK stays in its argument)
 q       = '$(subst ','\'',$(1))'
@@ -104,6 +106,9 @@ bench: setup
 	$(BIN)/python bench/style_instrument.py --preset tiny --seeds 30 --out $(QWORK)/bench/style_instrument.json
 	$(BIN)/python bench/apps.py --seeds 0 1 2 --data $(QDATA) --work $(QWORK)/bench
 	$(BIN)/python bench/cluster.py --parts make local slurm stages --work $(QWORK)/cluster
+	$(BIN)/python bench/sam_cpu.py --out $(QWORK)/sam_cpu.json
+	$(BIN)/python bench/segment_pictures.py $(REAL)/herzjesu_p8/images/0004.jpg --out docs/img/segments_herzjesu.jpg
+	$(BIN)/python bench/segment_pictures.py $(REAL)/fountain_p11/images/0005.jpg --out docs/img/segments_fountain.jpg
 	$(BIN)/python bench/busy.py --work $(QWORK)/busy
 	$(BIN)/python bench/busy.py --work $(QWORK)/busy --competitors 2
 	$(BIN)/python bench/omp_steps.py --data $(QDATA) --work $(QWORK)/omp_steps
@@ -133,6 +138,8 @@ bench-accuracy: setup
 	$(BIN)/python bench/select3d.py --seeds 0-8 --data $(QDATA)/accuracy --work $(QWORK)/accuracy
 	$(BIN)/python bench/select3d.py --seeds 9-17 --data $(QDATA)/accuracy --work $(QWORK)/accuracy
 	$(BIN)/python bench/style_seeds.py --seeds $(ACC_SEEDS) --data $(QDATA)/accuracy --work $(QWORK)/accuracy
+	$(BIN)/python bench/segments.py --seeds 0-8 --candidates sweep --data $(QDATA)/accuracy --work $(QWORK)/accuracy
+	$(BIN)/python bench/segments.py --seeds 9-17 --candidates graph hier truth --data $(QDATA)/accuracy --work $(QWORK)/accuracy
 
 # threads per scene job: the cores shared among make's parallel jobs (-jN; a bare -j
 # counts as one job per core), at least one. OpenMP teams on oversubscribed cores
