@@ -129,6 +129,7 @@ CHAIN_LABELS.update({v: (v, {}) for v in OPTIONAL_LABELS})
 FEATURE_LABELS = ("2d", "2d-ae", "2d-nosmooth", "2d-best", "2d-truth", "2d-old")
 OLD_SEGMENTS = ["images=orig", "segmenter=graph"]  # extract-features, for 2d-old
 TRUTH_SEGMENTS = ["images=orig", "segmenter=truth"]  # extract-features, for 2d-truth
+OTHER_SEGMENTS = {"2d-truth": TRUTH_SEGMENTS, "2d-old": OLD_SEGMENTS}
 ALL_LABELS = ("male", *FEATURE_LABELS, *(k for k in CHAIN_LABELS if k != "male"))
 LABELS = tuple(k for k in ALL_LABELS if k not in OPTIONAL_LABELS)  # the default run
 CHAIN_LOSS = (  # the chain from the photo's features to the fused field
@@ -216,9 +217,7 @@ def label_key(ctx, ref, scene: Path, work: Path, label: str) -> str:
     from ptovs.variants import variant_sets
 
     if label in FEATURE_LABELS:
-        items = {"2d-truth": TRUTH_SEGMENTS, "2d-old": OLD_SEGMENTS}.get(
-            label, ["images=orig"]
-        )
+        items = OTHER_SEGMENTS.get(label, ["images=orig"])
         keys = [Chain(ctx, ref, {"extract-features": items}).key("extract-features")]
         if label == "2d-ae":
             keys.append(Chain(ctx, ref).key("train-ae"))
@@ -288,6 +287,42 @@ def best_union(labels: np.ndarray, gt: np.ndarray) -> tuple[float, np.ndarray]:
     return float(iou[k]), (ok & keep[np.where(ok, lab, 0)]).reshape(labels.shape)
 
 
+def phrase_table(sc):
+    """The stand-in's embeddings of every query of a synthetic scene, then the
+    canonical and background phrases: (emb [K, D], index by phrase, canonical
+    indices, background indices)."""
+    import torch
+
+    from ptovs.encoders.synthetic import SyntheticEncoder
+    from ptovs.field.relevancy import BACKGROUND_PHRASES, CANONICAL
+    from ptovs.scene import load_labels
+
+    queries = sorted({q for v in sc.labelled_views() for q in load_labels(sc, v)})
+    phrases = list(dict.fromkeys([*queries, *CANONICAL, *BACKGROUND_PHRASES]))
+    emb = torch.from_numpy(SyntheticEncoder.from_scene(sc.root).encode_texts(phrases))
+    idx = {p: i for i, p in enumerate(phrases)}
+    return emb, idx, [idx[p] for p in CANONICAL], [idx[p] for p in BACKGROUND_PHRASES]
+
+
+def dense_cos(sf, emb, ae=None):
+    """[L, 1, H, W, K]: each segment's cosines with every phrase (its feature row
+    through `ae` when given), painted over its pixels."""
+    import torch
+
+    maps = []
+    for lv in range(sf.levels):
+        rows = torch.from_numpy(sf.level_table(lv).astype(np.float32))
+        if ae is not None:
+            with torch.no_grad():
+                rows = ae.decode(ae.encode(rows))
+        c = rows @ emb.float().T  # [n, K]
+        local = torch.from_numpy(sf.local(lv).astype(np.int64))
+        dense = torch.zeros((*local.shape, c.shape[1]))
+        dense[local >= 0] = c[local[local >= 0]]
+        maps.append(dense)
+    return torch.stack(maps)[:, None]
+
+
 def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
     """The 2-D labels `labels` asks for, on the evaluation photos' own segment
     features (no field): "2d" (the pipeline's relevancy and mask), "2d-ae" (the
@@ -297,11 +332,8 @@ def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
     best level: no classifier error)."""
     import dataclasses
 
-    import torch
-
-    from ptovs.encoders.synthetic import SyntheticEncoder
     from ptovs.features import SegmentFeatures
-    from ptovs.field.relevancy import BACKGROUND_PHRASES, CANONICAL, answer
+    from ptovs.field.relevancy import answer
     from ptovs.metrics import pair_metrics
     from ptovs.nets.autoencoder import load_autoencoder
     from ptovs.scene import load_labels
@@ -309,14 +341,11 @@ def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
 
     fe, _ = _build(Chain(ctx, ref, {"extract-features": ["images=orig"]}),
                    "extract-features")  # fmt: skip
-    fe_old = None
-    if "2d-old" in labels:
-        fe_old, _ = _build(Chain(ctx, ref, {"extract-features": OLD_SEGMENTS}),
-                           "extract-features")  # fmt: skip
-    fe_truth = None
-    if "2d-truth" in labels:
-        fe_truth, _ = _build(Chain(ctx, ref, {"extract-features": TRUTH_SEGMENTS}),
-                             "extract-features")  # fmt: skip
+    others = {  # the labels read from other segments' features
+        lab: _build(Chain(ctx, ref, {"extract-features": items}), "extract-features")[0]
+        for lab, items in OTHER_SEGMENTS.items()
+        if lab in labels
+    }
     male = Chain(ctx, ref)
     ae = None
     if "2d-ae" in labels:
@@ -327,28 +356,8 @@ def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
     raw = dataclasses.replace(settings, smooth_kernel=1, majority=1)
     fixed = dataclasses.replace(settings, smooth_kernel=20, majority=7, filter_ref=0.0)
     sc = ref.load()
-    queries = sorted({q for v in sc.labelled_views() for q in load_labels(sc, v)})
-    phrases = list(dict.fromkeys([*queries, *CANONICAL, *BACKGROUND_PHRASES]))
-    emb = torch.from_numpy(SyntheticEncoder.from_scene(sc.root).encode_texts(phrases))
-    idx = {p: i for i, p in enumerate(phrases)}
-    canon = [idx[p] for p in CANONICAL]
-    bg = [idx[p] for p in BACKGROUND_PHRASES]
+    emb, idx, canon, bg = phrase_table(sc)
     out: dict[str, list[dict]] = {lab: [] for lab in FEATURE_LABELS if lab in labels}
-
-    def dense_cos(sf: SegmentFeatures, through_ae: bool) -> torch.Tensor:
-        """[L, 1, H, W, K]: each segment's cosines with every phrase, painted."""
-        maps = []
-        for lv in range(sf.levels):
-            rows = torch.from_numpy(sf.level_table(lv).astype(np.float32))
-            if through_ae:
-                with torch.no_grad():
-                    rows = ae.decode(ae.encode(rows))
-            c = rows @ emb.float().T  # [n, K]
-            local = torch.from_numpy(sf.local(lv).astype(np.int64))
-            dense = torch.zeros((*local.shape, c.shape[1]))
-            dense[local >= 0] = c[local[local >= 0]]
-            maps.append(dense)
-        return torch.stack(maps)[:, None]
 
     for view in sc.labelled_views():
         sf = SegmentFeatures.from_view(fe[view.name], "orig")
@@ -356,17 +365,16 @@ def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
         qidx = [idx[q] for q in gts]
         runs = []  # (label, cosines, settings)
         if {"2d", "2d-nosmooth"} & set(out):
-            cos = dense_cos(sf, False)
+            cos = dense_cos(sf, emb)
             runs += [(lab, cos, st) for lab, st in
                      (("2d", settings), ("2d-nosmooth", raw)) if lab in out]  # fmt: skip
         if "2d-ae" in out:
-            runs.append(("2d-ae", dense_cos(sf, True), settings))
-        if fe_truth is not None:
-            tf = SegmentFeatures.from_view(fe_truth[view.name], "orig")
-            runs.append(("2d-truth", dense_cos(tf, False), settings))
-        if fe_old is not None:
-            of = SegmentFeatures.from_view(fe_old[view.name], "orig")
-            runs.append(("2d-old", dense_cos(of, False), fixed))
+            runs.append(("2d-ae", dense_cos(sf, emb, ae), settings))
+        for lab, art in others.items():
+            other = SegmentFeatures.from_view(art[view.name], "orig")
+            runs.append(
+                (lab, dense_cos(other, emb), fixed if lab == "2d-old" else settings)
+            )
         for cat, gt in gts.items():
             if not gt.any():
                 continue
@@ -380,9 +388,8 @@ def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
                 m = pair_metrics(best[1], gt)
                 out["2d-best"].append({"view": view.name, "query": cat, **m})
     fe.close()
-    for art in (fe_truth, fe_old):
-        if art is not None:
-            art.close()
+    for art in others.values():
+        art.close()
     return out
 
 

@@ -48,19 +48,6 @@ FILTERS = {  # name -> (smooth_kernel, majority, filter_ref)
 }
 
 
-def best_union(labels: np.ndarray, gt: np.ndarray) -> float:
-    """The largest IoU with `gt` of a union of `labels`' segments (every pixel has
-    a segment): segments added in order of their share inside gt."""
-    lab = labels.ravel()
-    n = int(lab.max()) + 1
-    area = np.bincount(lab, minlength=n).astype(np.float64)
-    inside = np.bincount(lab, weights=gt.ravel().astype(np.float64), minlength=n)
-    order = np.argsort(-(inside / np.maximum(area, 1)), kind="stable")
-    inter = np.cumsum(inside[order])
-    union = gt.sum() + np.cumsum(area[order]) - inter
-    return float((inter / np.maximum(union, 1)).max()) if n else 0.0
-
-
 def candidate(name: str, scene: Path):
     """A segmenter by name: ptovs's own, `truth`, or a bench-only candidate."""
     from ptovs.segment import get_segmenter
@@ -139,47 +126,36 @@ EXTRA: dict = {}  # bench-only candidates: name -> constructor (filled by _sweep
 
 
 def seed_rows(scene: Path, config: Path, candidates: list[str], filters: list[str]):
-    import torch
+    import dataclasses
+
+    from accuracy import best_union, dense_cos, phrase_table
 
     from ptovs.config import load_config
     from ptovs.encoders import get_encoder
-    from ptovs.encoders.synthetic import SyntheticEncoder
-    from ptovs.field.relevancy import BACKGROUND_PHRASES, CANONICAL, answer
+    from ptovs.field.relevancy import answer
     from ptovs.metrics import pair_metrics
     from ptovs.scene import load_labels
     from ptovs.segment.quality import boundary_f, covering
     from ptovs.segment.truth import truth_ids
     from ptovs.stage import Chain, RunContext, resolve_scene
-    from ptovs.stages.extract_features import image_features
+    from ptovs.stages.extract_features import encode_levels
 
     ctx = RunContext(ROOT / "work" / "segments-tmp", load_config(config))
     ref = resolve_scene(ctx, None, scene)
     base = Chain(ctx, ref).config("query").settings()
     sc = ref.load()
     encoder = get_encoder("synthetic")
-    views = sc.labelled_views()
-    queries = sorted({q for v in views for q in load_labels(sc, v)})
-    phrases = list(dict.fromkeys([*queries, *CANONICAL, *BACKGROUND_PHRASES]))
-    emb = torch.from_numpy(SyntheticEncoder.from_scene(sc.root).encode_texts(phrases))
-    idx = {p: i for i, p in enumerate(phrases)}
-    canon = [idx[p] for p in CANONICAL]
-    bg = [idx[p] for p in BACKGROUND_PHRASES]
-    import dataclasses
-
+    emb, idx, canon, bg = phrase_table(sc)
     sets = {
-        f: dataclasses.replace(
-            base,
-            smooth_kernel=FILTERS[f][0],
-            majority=FILTERS[f][1],
-            filter_ref=FILTERS[f][2],
-        )  # fmt: skip
+        f: dataclasses.replace(base, smooth_kernel=FILTERS[f][0],
+                               majority=FILTERS[f][1], filter_ref=FILTERS[f][2])
         for f in filters
-    }
+    }  # fmt: skip
     truth_dir = scene / "synthetic" / "truth"
     rows = []
     for name in candidates:
         seg = candidate(name, scene)
-        for view in views:
+        for view in sc.labelled_views():
             img = (sc.load_image(view) * 255.0 + 0.5).astype(np.uint8)
             with np.load(truth_dir / f"{view.stem}.npz") as z:
                 pid = truth_ids(z["part_id"], z["depth"]).astype(np.int64)
@@ -192,31 +168,20 @@ def seed_rows(scene: Path, config: Path, candidates: list[str], filters: list[st
             levels = seg.segment(img)
             secs = time.perf_counter() - t0
             h, w = img.shape[:2]
-            q = {"segmenter": name, "view": view.name, "kind": "segments",
-                 "seconds": secs, "seconds_512": secs * 512 * 384 / (h * w),
-                 "covering": [covering(lv.labels, pid) for lv in levels],
-                 "boundary_f": [boundary_f(lv.labels, pid)[0] for lv in levels],
-                 "segments": [lv.n for lv in levels]}  # fmt: skip
-            rows.append(q)
-            if hasattr(seg, "select"):
-                seg.select(view.stem, True)
-            f = image_features(img, seg, encoder)
-            cos = []
-            for lv in range(f.levels):
-                c = torch.from_numpy(f.level_table(lv).astype(np.float32)) @ emb.T
-                local = torch.from_numpy(f.local(lv).astype(np.int64))
-                dense = torch.zeros((*local.shape, c.shape[1]))
-                dense[local >= 0] = c[local[local >= 0]]
-                cos.append(dense)
-            stacked = torch.stack(cos)[:, None]
+            rows.append({"segmenter": name, "view": view.name, "kind": "segments",
+                         "seconds": secs, "seconds_512": secs * 512 * 384 / (h * w),
+                         "covering": [covering(lv.labels, pid) for lv in levels],
+                         "boundary_f": [boundary_f(lv.labels, pid)[0] for lv in levels],
+                         "segments": [lv.n for lv in levels]})  # fmt: skip
+            cos = dense_cos(encode_levels(img, levels, encoder), emb)
             gts = load_labels(sc, view, (h, w))
             qidx = [idx[c] for c in gts]
             for cat, gt in gts.items():
                 if not gt.any():
                     continue
-                best = max(best_union(lv.labels, gt) for lv in levels)
+                best = max(best_union(lv.labels, gt)[0] for lv in levels)
                 for fname, st in sets.items():
-                    r = answer(stacked, idx[cat], canon, bg, st, qidx)
+                    r = answer(cos, idx[cat], canon, bg, st, qidx)
                     m = pair_metrics(r.mask, gt)
                     rows.append({"segmenter": name, "view": view.name, "query": cat,
                                  "kind": "2d", "filter": fname, **m})  # fmt: skip

@@ -71,6 +71,19 @@ def trained_work(
     return work, out
 
 
+def need_slurm_host(commands: tuple[str, ...]) -> None:
+    """Fail (never skip) unless the test Slurm can start here: root and Debian's
+    packages (`.ci/run` installs them)."""
+    import os
+
+    missing = [x for x in commands if shutil.which(x) is None]
+    if missing:
+        pytest.fail(f"not installed: {', '.join(missing)}; as root: apt-get install -y "
+                    "slurm-wlm munge slurmdbd mariadb-server")  # fmt: skip
+    if os.geteuid() != 0:
+        pytest.fail("the single-node Slurm starts its daemons as root; run as root")
+
+
 def copy_work(src: Path, dst: Path) -> Path:
     """A private copy of a work dir (artifacts, no locks)."""
     shutil.copytree(src, dst, ignore=shutil.ignore_patterns("*.lock"))

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import pytest
 
+from conftest import need_slurm_host
+
 ROOT = Path(__file__).resolve().parents[1]
 SLURM_LOCAL = ROOT / "workflow" / "slurm-local"
 MARKER = ".ptovs-slurm-local"
@@ -32,12 +34,7 @@ pytestmark = pytest.mark.slurm
 
 @pytest.fixture(scope="module", autouse=True)
 def root_and_packages():
-    missing = [x for x in NEEDS if shutil.which(x) is None]
-    if missing:
-        pytest.fail(f"not installed: {', '.join(missing)}; as root: apt-get install -y "
-                    "slurm-wlm munge slurmdbd mariadb-server")  # fmt: skip
-    if os.geteuid() != 0:
-        pytest.fail("the single-node Slurm starts its daemons as root; run as root")
+    need_slurm_host(NEEDS)
 
 
 @pytest.fixture

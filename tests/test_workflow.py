@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import copy_work
+from conftest import copy_work, need_slurm_host
 from ptovs.pipeline import (
     PIPELINE,
     RESOURCES,
@@ -391,12 +391,7 @@ def slurm_cluster():
     """munged, MariaDB, slurmdbd, slurmctld and slurmd on 127.0.0.1 in a temporary
     folder (workflow/slurm-local/start.sh): the environment its clients need. Fails,
     never skips, when they cannot start, saying what failed."""
-    missing = [x for x in SLURM_NEEDS if shutil.which(x) is None]
-    if missing:
-        pytest.fail(f"not installed: {', '.join(missing)}; as root: apt-get install -y "
-                    "slurm-wlm munge slurmdbd mariadb-server")  # fmt: skip
-    if os.geteuid() != 0:
-        pytest.fail("the single-node Slurm starts its daemons as root; run as root")
+    need_slurm_host(SLURM_NEEDS)
     folder = Path(tempfile.mkdtemp(prefix="ptovs-slurm-", dir="/tmp"))
     start = subprocess.run(["bash", str(SLURM_LOCAL / "start.sh"), str(folder)],
                            capture_output=True, text=True, timeout=300)  # fmt: skip

@@ -19,6 +19,7 @@ Every client input is data: validated, capped, never markup.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import re
 import signal
@@ -27,6 +28,7 @@ import sys
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -108,7 +110,6 @@ class ViewState:
     appearance: str = NEUTRAL
     answer: QueryAnswer | None = None
     exports: int = 0
-    busy: bool = False  # a query or a tour of this browser is running
 
 
 def _fibonacci_sphere(n: int) -> np.ndarray:
@@ -502,12 +503,21 @@ class Panel:
         self.draw_sky()
         self.refresh_heatmap()
 
+    @contextlib.contextmanager
+    def _alone(self) -> Iterator[None]:
+        """One query or tour of this page at a time; another press is refused."""
+        if not self._busy.acquire(blocking=False):
+            raise InputError(
+                "still working on the last request; press again when it ends"
+            )
+        try:
+            yield
+        finally:
+            self._busy.release()
+
     @_safely
     def ask_phrase(self, text) -> QueryAnswer | None:
-        if not self._busy.acquire(blocking=False):
-            self.say("⚠ still working on the last request; press again when it ends")
-            return None
-        try:
+        with self._alone():
             t0 = time.perf_counter()
             answer = self.session.query(text)
             self.state.answer = answer
@@ -515,8 +525,6 @@ class Panel:
             self.say(answer.line(time.perf_counter() - t0))
             self.refresh_heatmap()
             return answer
-        finally:
-            self._busy.release()
 
     @_safely
     def clear_phrase(self) -> None:
@@ -553,17 +561,12 @@ class Panel:
 
     @_safely
     def play_tour(self, frames: int = 90, fps: float = 30.0) -> None:
-        if not self._busy.acquire(blocking=False):
-            self.say("⚠ still working on the last request; press again when it ends")
-            return
-        try:
+        with self._alone():
             for cam in self.session.tour(frames):
                 wxyz, pos = _pose_of(cam.cam_from_world.numpy())
                 with self.client.atomic():
                     self.client.camera.wxyz, self.client.camera.position = wxyz, pos
                 time.sleep(1 / fps)
-        finally:
-            self._busy.release()
 
 
 class Page:

@@ -157,7 +157,19 @@ def image_features(
     crop_size: int = 224,
 ) -> SegmentFeatures:
     """Segment one image at every level and encode each segment's crop."""
-    levels = segmenter.segment(image)
+    return encode_levels(
+        image, segmenter.segment(image), encoder, batch_size, crop_size
+    )
+
+
+def encode_levels(
+    image: np.ndarray,  # [H, W, 3] uint8 RGB
+    levels: list,
+    encoder: Encoder,
+    batch_size: int = 64,
+    crop_size: int = 224,
+) -> SegmentFeatures:
+    """Encode each segment's crop of an image already segmented (`Level`s)."""
     feats = []
     for level in levels:
         rows = np.zeros((level.n, encoder.dim), np.float32)
@@ -241,6 +253,7 @@ __all__ = [
     "build_encoder",
     "build_segmenter",
     "command",
+    "encode_levels",
     "image_features",
     "run",
 ]
