@@ -2,7 +2,8 @@
 #   make demo          fresh machine → venv, tiny synthetic scene, every stage, masks, metrics, a PLY
 #   make view          after make demo: roam the demo scene and ask it things in the browser (open the printed URL)
 #   make test          the test suite (what CI runs)
-#   make bench-accuracy  the accuracy instrument: 18 seeds, every variant, CIs (~90 min)
+#   make bench-accuracy  the accuracy instrument: 18 seeds, every variant, CIs (~2 h)
+#   make bench-upstream  issue 40's one-off comparisons (segmenters; old and truth front ends)
 #   make -j3 all       every scene under DATA in parallel, stages in order, then the
 #                      per-scene table (a failing scene is marked, the others go on)
 #   make cluster       the same through Snakemake: PROFILE=local (default) or slurm
@@ -52,7 +53,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # Gaussians, 2.5 %, at relevancy score 0.477 on 2026-11-26's machine)
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo view test test-slurm lint format bench bench-accuracy all cluster scenes table status clean-work $(SCENES)
+.PHONY: setup demo view test test-slurm lint format bench bench-accuracy bench-upstream all cluster scenes table status clean-work $(SCENES)
 
 setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml
@@ -138,8 +139,16 @@ bench-accuracy: setup
 	$(BIN)/python bench/select3d.py --seeds 0-8 --data $(QDATA)/accuracy --work $(QWORK)/accuracy
 	$(BIN)/python bench/select3d.py --seeds 9-17 --data $(QDATA)/accuracy --work $(QWORK)/accuracy
 	$(BIN)/python bench/style_seeds.py --seeds $(ACC_SEEDS) --data $(QDATA)/accuracy --work $(QWORK)/accuracy
+
+# the one-off comparisons of issue 40, on the instrument's scenes and cache: the
+# segmenter sweep on dev and the three segmenters on test; the old front end and
+# Table 3 rows under truth segments on test
+bench-upstream: setup
 	$(BIN)/python bench/segments.py --seeds 0-8 --candidates sweep --data $(QDATA)/accuracy --work $(QWORK)/accuracy
 	$(BIN)/python bench/segments.py --seeds 9-17 --candidates graph hier truth --data $(QDATA)/accuracy --work $(QWORK)/accuracy
+	$(BIN)/python bench/accuracy.py --preset small --seeds 9-17 --dev 0-8 \
+	  --data $(QDATA)/accuracy --work $(QWORK)/accuracy --labels male 2d 2d-old male-old \
+	  langsplat no-multi-appearance male-truth langsplat-truth no-multi-appearance-truth
 
 # threads per scene job: the cores shared among make's parallel jobs (-jN; a bare -j
 # counts as one job per core), at least one. OpenMP teams on oversubscribed cores

@@ -36,10 +36,6 @@ at a time on two cores, one thread each), the instrument measures, on every
                       segments in order of their share inside the truth mask, the
                       best prefix, best level): no classifier error
   2d-truth            2d on the truth part masks' features (`segmenter = "truth"`)
-  2d-old              2d as before issue 40 (graph segments, fixed 20/7 px filters)
-  male-old            the full method with those defaults
-  male-truth, langsplat-truth, no-multi-appearance-truth   Table 3 rows with the
-                      truth part masks as segments (the paper's SAM setting's bound)
   slot-orig, slot-nov1..3   the full method's field, one appearance slot alone
   no-multi-appearance, no-tum-aum, no-tum, no-aum, no-bg-filter, imglvlmax,
   pixmax, pixavg, pixweighted   Table 3 rows 1 and 6-13 (ptovs.variants)
@@ -47,6 +43,11 @@ at a time on two cores, one thread each), the instrument measures, on every
   no-uncertainty-ae, lift-codes   on request only (--labels): Table 3 row 3
                       (train-ae unweighted), the code-space lift (each Gaussian's
                       mean target code)
+  on request only (--labels; `make bench-upstream` on the test seeds):
+  2d-old              2d as before issue 40 (graph segments, fixed 20/7 px filters)
+  male-old            the full method with those defaults
+  male-truth, langsplat-truth, no-multi-appearance-truth   Table 3 rows with the
+                      truth part masks as segments (the paper's SAM setting's bound)
 
 A finished seed's pairs go to <work>/results/<scene>.json (atomically), each label
 with the artifact key of what it measured (the evaluate artifact's; for 2d/2d-ae the
@@ -122,10 +123,19 @@ CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
         for v in ("male", "langsplat", "no-multi-appearance")
     },
 }
-# measured only when asked for (--labels): candidates for issue 22's fixes, kept out
-# of the default run so that `make bench-accuracy` stays what the report describes
-OPTIONAL_LABELS = ("no-uncertainty-ae", "lift-codes")
-CHAIN_LABELS.update({v: (v, {}) for v in OPTIONAL_LABELS})
+# measured only when asked for (--labels), kept out of the default run so that
+# `make bench-accuracy` stays within its time: candidates for issue 22's fixes, and
+# the one-off comparisons of issue 40 (the old front end; Table 3 rows under truth
+# segments: `make bench-upstream`)
+UPSTREAM_LABELS = (
+    "2d-old",
+    "male-old",
+    "male-truth",
+    "langsplat-truth",
+    "no-multi-appearance-truth",
+)
+OPTIONAL_LABELS = ("no-uncertainty-ae", "lift-codes", *UPSTREAM_LABELS)
+CHAIN_LABELS.update({v: (v, {}) for v in ("no-uncertainty-ae", "lift-codes")})
 FEATURE_LABELS = ("2d", "2d-ae", "2d-nosmooth", "2d-best", "2d-truth", "2d-old")
 OLD_SEGMENTS = ["images=orig", "segmenter=graph"]  # extract-features, for 2d-old
 TRUTH_SEGMENTS = ["images=orig", "segmenter=truth"]  # extract-features, for 2d-truth
