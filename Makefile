@@ -53,7 +53,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # Gaussians, 2.5 %, at relevancy score 0.477 on 2026-11-26's machine)
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo view test test-slurm lint format bench bench-accuracy bench-upstream all cluster scenes table status clean-work $(SCENES)
+.PHONY: setup demo view test test-slurm lint format bench bench-accuracy bench-upstream bench-standin all cluster scenes table status clean-work $(SCENES)
 
 setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml
@@ -139,6 +139,11 @@ bench-accuracy: setup
 	$(BIN)/python bench/select3d.py --seeds 0-8 --data $(QDATA)/accuracy --work $(QWORK)/accuracy
 	$(BIN)/python bench/select3d.py --seeds 9-17 --data $(QDATA)/accuracy --work $(QWORK)/accuracy
 	$(BIN)/python bench/style_seeds.py --seeds $(ACC_SEEDS) --data $(QDATA)/accuracy --work $(QWORK)/accuracy
+
+# the stand-in encoder's failure profile against CLIP's (issue 41): calibration
+# seeds only, crops only, no method measured
+bench-standin: setup
+	$(BIN)/python bench/standin_profile.py --seeds 300-305 --out $(QWORK)/standin/profile.json
 
 # the one-off comparisons of issue 40, on the instrument's scenes and cache: the
 # segmenter sweep on dev and the three segmenters on test; the old front end and

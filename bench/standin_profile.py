@@ -1,0 +1,283 @@
+"""How the stand-in encoder fails, crop by crop, against CLIP's published profile (issue 41).
+
+    python bench/standin_profile.py --seeds 300-303 --out work/standin/profile.json
+
+Calibration only: crops of the labelled parts (truth masks, cut as the pipeline cuts
+a segment: `ptovs.crop.prepare_crop`), classified closed-set among the scene's part
+phrases (top-1 text cosine). No method, no field, no mIoU is computed here. The
+calibration seeds (300 and up) are never used to judge a method.
+
+Per seed, the world and cameras are the generator's plan (`plan_scene`, preset
+`small`); every train camera is rendered again (`rerender`) under
+
+  clean        the neutral daylight, no occluders: the reference of every row
+  daylight     a random ordinary appearance (day, dusk or overcast, no filter)
+  night        a random night appearance
+  bw, sepia    the neutral daylight through the camera's film filter
+  occluded     the neutral daylight with new billboards (rows by covered share)
+  conflict     the neutral daylight with every part's texture moved to another
+               part (a derangement): shape of one part, texture of another
+
+and the clean render is degraded as the published studies degrade images:
+
+  contrast-5, contrast-3   the photo blended to mid grey at 5 % / 3 % contrast
+                           (model-vs-human), 8-bit
+  jpeg-7                   the photo as JPEG quality 7 (ImageNet-C severity 5)
+  blur-3, blur-5           Gaussian blur of the 224-px crop, sigma 3 / 5 px
+  res-64, res-32           the 224-px crop through 64 / 32 px (LR0.FM)
+  noise-05, noise-20       uniform noise of width 0.05 / 0.20 on the crop
+
+Each row is top-1 accuracy and its change relative to clean on the same crops. Also:
+shape bias on the conflict crops (decisions for the part's own phrase over
+decisions for the phrase of the texture it wears), the view change (clean crops by
+the camera's azimuth from the landmark's front), and how independent the errors of
+two daylight renders of the same crop are (error lift: P(wrong in B | wrong in A)
+/ P(wrong in B); 1 is independent).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import ROOT, seed_list  # noqa: E402  (same folder)
+
+from ptovs.atomic import atomic_file  # noqa: E402
+from ptovs.crop import prepare_crop  # noqa: E402
+from ptovs.encoders.synthetic import SyntheticEncoder  # noqa: E402
+from ptovs.synthetic.generate import (  # noqa: E402
+    PRESETS,
+    plan_scene,
+    rerender,
+    scene_vocabulary,
+)
+from ptovs.synthetic.world import Camera, neutral_appearance  # noqa: E402
+from ptovs.synthetic.world.appearance import sample_appearance  # noqa: E402
+
+MIN_FRAC = 0.004  # a part needs 0.4 % of the image (and 64 px) to be cut
+CROP_ROWS = {  # crop-level degradations: name -> function of a [224, 224, 3] crop
+    "blur-3": lambda c, r: _remask(c, cv2.GaussianBlur(c, (0, 0), 3.0)),
+    "blur-5": lambda c, r: _remask(c, cv2.GaussianBlur(c, (0, 0), 5.0)),
+    "res-64": lambda c, r: _remask(c, _through(c, 64)),
+    "res-32": lambda c, r: _remask(c, _through(c, 32)),
+    "noise-05": lambda c, r: _remask(c, c + r.uniform(-0.05, 0.05, c.shape)),
+    "noise-20": lambda c, r: _remask(c, c + r.uniform(-0.2, 0.2, c.shape)),
+}
+PHOTO_ROWS = {  # photo-level degradations of the clean render (uint8 RGB)
+    "contrast-5": lambda im: _contrast(im, 0.05),
+    "contrast-3": lambda im: _contrast(im, 0.03),
+    "jpeg-7": lambda im: _jpeg(im, 7),
+}
+APPEARANCE_ROWS = ("daylight", "night", "bw", "sepia")
+OCCLUSION_BINS = ((0.1, 0.3), (0.3, 0.6))
+VIEW_BINS = ((0.0, 30.0), (30.0, 60.0), (60.0, 180.0))
+
+
+def _remask(clean: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """Degraded crop kept inside the clean crop's mask (black outside, never
+    black inside: black means outside to the encoder)."""
+    inside = clean.max(axis=2) > 0
+    out = np.clip(out, 1.0 / 255.0, 1.0).astype(np.float32)
+    out[~inside] = 0.0
+    return out
+
+
+def _through(crop: np.ndarray, px: int) -> np.ndarray:
+    small = cv2.resize(crop, (px, px), interpolation=cv2.INTER_AREA)
+    return cv2.resize(small, crop.shape[:2][::-1], interpolation=cv2.INTER_CUBIC)
+
+
+def _contrast(im: np.ndarray, c: float) -> np.ndarray:
+    x = im.astype(np.float64) / 255.0
+    return np.clip(np.round((c * x + (1 - c) * 0.5) * 255.0), 0, 255).astype(np.uint8)
+
+
+def _jpeg(im: np.ndarray, quality: int) -> np.ndarray:
+    ok, buf = cv2.imencode(".jpg", im[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, quality])
+    assert ok
+    return cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1].copy()
+
+
+def _appearance(kind: str, rng: np.random.Generator):
+    if kind in ("bw", "sepia"):
+        return replace(neutral_appearance(), filter=kind)
+    for _ in range(200):
+        app = sample_appearance(rng)
+        if kind == "night" and app.sky == "night":
+            return app
+        if kind == "daylight" and app.sky != "night" and not app.hard:
+            return app
+    raise RuntimeError(f"no {kind} appearance drawn")
+
+
+def _parts(view, need: int) -> list[tuple[int, np.ndarray]]:
+    return [
+        (int(k), view.part_id == k)
+        for k in np.unique(view.part_id[view.part_id >= 0])
+        if (view.part_id == k).sum() >= need
+    ]
+
+
+def _azimuth(world, cam: Camera) -> float:
+    """Degrees between the camera and the landmark's front (-y), about the up axis."""
+    d = cam.centre - world.center
+    return abs(math.degrees(math.atan2(d[0], -d[1])))
+
+
+def profile_seed(seed: int, n_cams: int, preset: str = "small") -> dict:
+    """Every crop's (row, part, predicted part) of one calibration seed."""
+    plan = plan_scene(preset, seed)
+    world = plan.world
+    vocab = scene_vocabulary(world, PRESETS[preset], [])
+    enc = SyntheticEncoder(vocab)
+    phrases = sorted({p.query for p in world.parts})
+    text = enc.encode_texts(phrases)
+    label = {p.id: phrases.index(p.query) for p in world.parts}
+    train = [i for i in range(len(plan.cams)) if i not in plan.test_ids]
+    rng = np.random.default_rng([seed, 41])
+    cams = sorted(rng.choice(train, min(n_cams, len(train)), replace=False).tolist())
+    rows: dict[str, list] = {}  # row -> [(cam, part, truth, predicted)]
+    feats: dict[str, list] = {}  # daylight pairs for the error lift
+
+    def add(row: str, ci: int, pid: int, crops: list[np.ndarray], truth: list[int]):
+        if not crops:
+            return
+        f = enc.encode_images(np.stack(crops))
+        pred = np.argmax(f @ text.T, axis=1)
+        rows.setdefault(row, []).extend(
+            (ci, pid, int(t), int(p)) for t, p in zip(truth, pred, strict=True)
+        )
+        feats.setdefault(row, []).append(f)
+
+    for ci in cams:
+        rec = {"image_id": ci, **plan.cams[ci].to_dict()}
+        cam = plan.cams[ci]
+        need = max(64, int(MIN_FRAC * cam.width * cam.height))
+        clean, _ = rerender(world, rec, "neutral", "none", seed=seed)
+        parts = _parts(clean, need)
+        if not parts:
+            continue
+        pids = [k for k, _ in parts]
+        crops = [prepare_crop(clean.image, m) for _, m in parts]
+        truth = [label[k] for k in pids]
+        for k, c, t in zip(pids, crops, truth, strict=True):
+            add("clean", ci, k, [c], [t])
+            az = _azimuth(world, cam)
+            for lo, hi in VIEW_BINS:
+                if lo <= az < hi:
+                    add(f"view-{lo:.0f}-{hi:.0f}", ci, k, [c], [t])
+        crng = np.random.default_rng([seed, 42, ci])
+        for row, fn in CROP_ROWS.items():
+            for k, c, t in zip(pids, crops, truth, strict=True):
+                add(row, ci, k, [fn(c, crng)], [t])
+        for row, fn in PHOTO_ROWS.items():
+            img = fn(clean.image)
+            for k, m in parts:
+                add(row, ci, k, [prepare_crop(img, m)], [label[k]])
+        arng = np.random.default_rng([seed, 43, ci])
+        for row in APPEARANCE_ROWS + ("daylight-b",):
+            app = _appearance(row.removesuffix("-b"), arng)
+            v, _ = rerender(world, rec, app, "none", seed=seed)
+            for k, m in parts:  # same masks: the geometry does not change
+                add(row, ci, k, [prepare_crop(v.image, m)], [label[k]])
+        occ, _ = rerender(world, rec, "neutral", "force", seed=seed)
+        for k, m in parts:
+            share = float((occ.transient & m).sum() / m.sum())
+            for lo, hi in OCCLUSION_BINS:
+                if lo <= share < hi:
+                    add(f"occluded-{lo:.0%}-{hi:.0%}", ci, k,
+                        [prepare_crop(occ.image, m)], [label[k]])  # fmt: skip
+        # cue conflict: every part wears the texture of the next one (in id order)
+        ids = [p.id for p in world.parts]
+        wearer = {ids[i]: ids[(i + 1) % len(ids)] for i in range(len(ids))}
+        tex = {p.id: p.texture for p in world.parts}
+        swapped = replace(
+            world, parts=[replace(p, texture=tex[wearer[p.id]]) for p in world.parts]
+        )
+        v, _ = rerender(swapped, rec, "neutral", "none", seed=seed)
+        for k, m in parts:
+            if label[wearer[k]] == label[k]:
+                continue  # same phrase: no conflict
+            c = prepare_crop(v.image, m)
+            f = enc.encode_images(c[None])
+            pred = int(np.argmax(f @ text.T))
+            rows.setdefault("conflict", []).append(
+                (ci, k, label[k], pred, label[wearer[k]])
+            )
+    return {
+        "seed": seed,
+        "phrases": phrases,
+        "rows": {k: [list(r) for r in v] for k, v in rows.items()},
+    }
+
+
+def summarise(results: list[dict]) -> dict:
+    """Accuracy per row, relative change against clean, shape bias, error lift."""
+    acc: dict[str, dict] = {}
+    clean = [r for res in results for r in res["rows"].get("clean", [])]
+    base = float(np.mean([t == p for _, _, t, p in clean])) if clean else float("nan")
+    names = sorted({k for res in results for k in res["rows"]} - {"conflict"})
+    for name in names:
+        rs = [r for res in results for r in res["rows"].get(name, [])]
+        a = float(np.mean([r[2] == r[3] for r in rs])) if rs else float("nan")
+        acc[name] = {"n": len(rs), "accuracy": a, "relative": a / base - 1.0}
+    conf = [r for res in results for r in res["rows"].get("conflict", [])]
+    shape = sum(r[3] == r[2] for r in conf)
+    texture = sum(r[3] == r[4] for r in conf)
+    out = {
+        "clean_accuracy": base,
+        "rows": acc,
+        "shape_bias": shape / max(shape + texture, 1),
+        "conflict": {"n": len(conf), "shape": shape, "texture": texture},
+    }
+    # error lift between two independent daylight renders of the same crops
+    wa, wb = [], []
+    for res in results:
+        a = {(r[0], r[1]): r[2] != r[3] for r in res["rows"].get("daylight", [])}
+        b = {(r[0], r[1]): r[2] != r[3] for r in res["rows"].get("daylight-b", [])}
+        for key in a.keys() & b.keys():
+            wa.append(a[key])
+            wb.append(b[key])
+    wa_, wb_ = np.array(wa), np.array(wb)
+    p_b = wb_.mean() if len(wb_) else float("nan")
+    p_b_given_a = wb_[wa_].mean() if wa_.any() else float("nan")
+    out["error_lift"] = float(p_b_given_a / p_b) if p_b > 0 else float("nan")
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seeds", nargs="+", default=["300-303"])
+    ap.add_argument("--cams", type=int, default=16, help="train cameras a seed")
+    ap.add_argument(
+        "--out", type=Path, default=ROOT / "work" / "standin" / "profile.json"
+    )
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    results = []
+    for s in seed_list(args.seeds):
+        results.append(profile_seed(s, args.cams))
+        print(f"seed {s}: {time.perf_counter() - t0:.0f} s", flush=True)
+    summary = summarise(results)
+    summary["seconds"] = round(time.perf_counter() - t0, 1)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_file(args.out) as tmp:
+        Path(tmp).write_text(json.dumps({"summary": summary, "seeds": results}))
+    print(f"clean accuracy {summary['clean_accuracy']:.3f}  shape bias "
+          f"{summary['shape_bias']:.2f}  error lift {summary['error_lift']:.2f}")  # fmt: skip
+    for name, r in summary["rows"].items():
+        print(f"  {name:22s} n={r['n']:4d}  acc {r['accuracy']:.3f}  "
+              f"{100 * r['relative']:+.0f} %")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
