@@ -53,7 +53,7 @@ from common import ROOT, seed_list  # noqa: E402  (same folder)
 
 from ptovs.atomic import atomic_file  # noqa: E402
 from ptovs.crop import prepare_crop  # noqa: E402
-from ptovs.encoders.synthetic import SyntheticEncoder  # noqa: E402
+from ptovs.encoders import synthetic_encoder  # noqa: E402
 from ptovs.synthetic.generate import (  # noqa: E402
     PRESETS,
     plan_scene,
@@ -127,75 +127,85 @@ def _parts(view, need: int) -> list[tuple[int, np.ndarray]]:
     ]
 
 
+def _scaled(cam: Camera, scale: int) -> Camera:
+    """The camera with `scale` times the pixels on each side (same view)."""
+    K = cam.K.copy()
+    K[:2] *= scale
+    return Camera(K, cam.cam_from_world, cam.width * scale, cam.height * scale)
+
+
 def _azimuth(world, cam: Camera) -> float:
     """Degrees between the camera and the landmark's front (-y), about the up axis."""
     d = cam.centre - world.center
     return abs(math.degrees(math.atan2(d[0], -d[1])))
 
 
-def profile_seed(seed: int, n_cams: int, preset: str = "small") -> dict:
-    """Every crop's (row, part, predicted part) of one calibration seed."""
-    plan = plan_scene(preset, seed)
+def encoder(version: int, world, preset: str = "small"):
+    """The stand-in of `version` for a world, from its vocabulary as the generator
+    writes it."""
+    return synthetic_encoder(scene_vocabulary(world, PRESETS[preset], [], version))
+
+
+def collect(
+    seed: int, n_cams: int, scale: int = 3, version: int = 2, preset: str = "small"
+) -> dict:
+    """Every row's crops (uint8) and truth labels for one calibration seed, in
+    the world the generator makes for stand-in `version` (its screen's textures)."""
+    plan = plan_scene(preset, seed, version)
     world = plan.world
-    vocab = scene_vocabulary(world, PRESETS[preset], [])
-    enc = SyntheticEncoder(vocab)
     phrases = sorted({p.query for p in world.parts})
-    text = enc.encode_texts(phrases)
     label = {p.id: phrases.index(p.query) for p in world.parts}
     train = [i for i in range(len(plan.cams)) if i not in plan.test_ids]
     rng = np.random.default_rng([seed, 41])
     cams = sorted(rng.choice(train, min(n_cams, len(train)), replace=False).tolist())
-    rows: dict[str, list] = {}  # row -> [(cam, part, truth, predicted)]
-    feats: dict[str, list] = {}  # daylight pairs for the error lift
+    rows: dict[str, list] = {}  # row -> [(cam, part, truth[, texture's label]), crop]
 
-    def add(row: str, ci: int, pid: int, crops: list[np.ndarray], truth: list[int]):
-        if not crops:
-            return
-        f = enc.encode_images(np.stack(crops))
-        pred = np.argmax(f @ text.T, axis=1)
-        rows.setdefault(row, []).extend(
-            (ci, pid, int(t), int(p)) for t, p in zip(truth, pred, strict=True)
-        )
-        feats.setdefault(row, []).append(f)
+    def add(row: str, ci: int, pid: int, crop: np.ndarray, *extra: int) -> None:
+        c8 = np.round(np.clip(crop, 0.0, 1.0) * 255.0).astype(np.uint8)
+        rows.setdefault(row, []).append(((ci, pid, label[pid], *extra), c8))
 
     for ci in cams:
-        rec = {"image_id": ci, **plan.cams[ci].to_dict()}
-        cam = plan.cams[ci]
-        need = max(64, int(MIN_FRAC * cam.width * cam.height))
+        cam = _scaled(plan.cams[ci], scale)
+        rec = {"image_id": ci, **cam.to_dict()}
+        need = max(64 * scale * scale, int(MIN_FRAC * cam.width * cam.height))
         clean, _ = rerender(world, rec, "neutral", "none", seed=seed)
         parts = _parts(clean, need)
         if not parts:
             continue
-        pids = [k for k, _ in parts]
-        crops = [prepare_crop(clean.image, m) for _, m in parts]
-        truth = [label[k] for k in pids]
-        for k, c, t in zip(pids, crops, truth, strict=True):
-            add("clean", ci, k, [c], [t])
-            az = _azimuth(world, cam)
+        crops = {k: prepare_crop(clean.image, m) for k, m in parts}
+        if scale != 1:  # the same parts at the instrument's own photo size
+            rec1 = {"image_id": ci, **plan.cams[ci].to_dict()}
+            small, _ = rerender(world, rec1, "neutral", "none", seed=seed)
+            for k, _m in parts:
+                if (small.part_id == k).sum() >= 16:
+                    add("native", ci, k, prepare_crop(small.image, small.part_id == k))
+        az = _azimuth(world, cam)
+        crng = np.random.default_rng([seed, 42, ci])
+        for k, c in crops.items():
+            add("clean", ci, k, c)
             for lo, hi in VIEW_BINS:
                 if lo <= az < hi:
-                    add(f"view-{lo:.0f}-{hi:.0f}", ci, k, [c], [t])
-        crng = np.random.default_rng([seed, 42, ci])
-        for row, fn in CROP_ROWS.items():
-            for k, c, t in zip(pids, crops, truth, strict=True):
-                add(row, ci, k, [fn(c, crng)], [t])
+                    add(f"view-{lo:.0f}-{hi:.0f}", ci, k, c)
+            for row, fn in CROP_ROWS.items():
+                add(row, ci, k, fn(c, crng))
         for row, fn in PHOTO_ROWS.items():
             img = fn(clean.image)
             for k, m in parts:
-                add(row, ci, k, [prepare_crop(img, m)], [label[k]])
+                add(row, ci, k, prepare_crop(img, m))
         arng = np.random.default_rng([seed, 43, ci])
         for row in APPEARANCE_ROWS + ("daylight-b",):
             app = _appearance(row.removesuffix("-b"), arng)
             v, _ = rerender(world, rec, app, "none", seed=seed)
             for k, m in parts:  # same masks: the geometry does not change
-                add(row, ci, k, [prepare_crop(v.image, m)], [label[k]])
+                add(row, ci, k, prepare_crop(v.image, m))
         occ, _ = rerender(world, rec, "neutral", "force", seed=seed)
         for k, m in parts:
             share = float((occ.transient & m).sum() / m.sum())
             for lo, hi in OCCLUSION_BINS:
                 if lo <= share < hi:
-                    add(f"occluded-{lo:.0%}-{hi:.0%}", ci, k,
-                        [prepare_crop(occ.image, m)], [label[k]])  # fmt: skip
+                    add(
+                        f"occluded-{lo:.0%}-{hi:.0%}", ci, k, prepare_crop(occ.image, m)
+                    )
         # cue conflict: every part wears the texture of the next one (in id order)
         ids = [p.id for p in world.parts]
         wearer = {ids[i]: ids[(i + 1) % len(ids)] for i in range(len(ids))}
@@ -205,19 +215,24 @@ def profile_seed(seed: int, n_cams: int, preset: str = "small") -> dict:
         )
         v, _ = rerender(swapped, rec, "neutral", "none", seed=seed)
         for k, m in parts:
-            if label[wearer[k]] == label[k]:
-                continue  # same phrase: no conflict
-            c = prepare_crop(v.image, m)
-            f = enc.encode_images(c[None])
-            pred = int(np.argmax(f @ text.T))
-            rows.setdefault("conflict", []).append(
-                (ci, k, label[k], pred, label[wearer[k]])
-            )
-    return {
-        "seed": seed,
-        "phrases": phrases,
-        "rows": {k: [list(r) for r in v] for k, v in rows.items()},
-    }
+            if label[wearer[k]] != label[k]:  # the same phrase is no conflict
+                add("conflict", ci, k, prepare_crop(v.image, m), label[wearer[k]])
+    return {"seed": seed, "world": world, "phrases": phrases, "rows": rows}
+
+
+def score(col: dict, version: int) -> dict:
+    """Each crop's predicted phrase under the stand-in of `version`."""
+    enc = encoder(version, col["world"])
+    text = enc.encode_texts(col["phrases"])
+    out = {}
+    for row, items in col["rows"].items():
+        crops = np.stack([c for _, c in items]).astype(np.float32) / np.float32(255.0)
+        pred = np.argmax(enc.encode_images(crops) @ text.T, axis=1)
+        out[row] = [
+            [*meta[:3], int(p), *meta[3:]]
+            for (meta, _), p in zip(items, pred, strict=True)
+        ]
+    return {"seed": col["seed"], "phrases": col["phrases"], "rows": out}
 
 
 def summarise(results: list[dict]) -> dict:
@@ -258,6 +273,8 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", nargs="+", default=["300-303"])
     ap.add_argument("--cams", type=int, default=16, help="train cameras a seed")
+    ap.add_argument("--version", type=int, default=2, choices=(1, 2))
+    ap.add_argument("--scale", type=int, default=3, help="photo side x the preset's")
     ap.add_argument(
         "--out", type=Path, default=ROOT / "work" / "standin" / "profile.json"
     )
@@ -265,9 +282,11 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.perf_counter()
     results = []
     for s in seed_list(args.seeds):
-        results.append(profile_seed(s, args.cams))
+        col = collect(s, args.cams, args.scale, args.version)
+        results.append(score(col, args.version))
         print(f"seed {s}: {time.perf_counter() - t0:.0f} s", flush=True)
     summary = summarise(results)
+    summary["version"] = args.version
     summary["seconds"] = round(time.perf_counter() - t0, 1)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_file(args.out) as tmp:

@@ -203,7 +203,17 @@ def main(
 @click.option(
     "--name", default=None, help="Scene folder name (default <preset>_s<seed>)."
 )
-def synth_scene(out: Path, preset: str, seed: int, name: str | None) -> None:
+@click.option(
+    "--standin",
+    type=click.Choice(["1", "2"]),
+    default="1",
+    show_default=True,
+    help="The stand-in for CLIP the scene is written for: 1 (the original) or 2 "
+    "(calibrated against CLIP's published failure profile; docs/standin.md).",
+)
+def synth_scene(
+    out: Path, preset: str, seed: int, name: str | None, standin: str
+) -> None:
     """Generate a synthetic landmark photo collection in PT-OVS layout under OUT.
 
     Writes OUT/<name>/dense/{images,sparse}, OUT/<name>/<preset>.tsv,
@@ -215,7 +225,9 @@ def synth_scene(out: Path, preset: str, seed: int, name: str | None) -> None:
     from ptovs.synthetic import generate_scene
 
     t0 = time.perf_counter()
-    scene_dir = generate_scene(out, preset=preset, seed=seed, name=name)
+    scene_dir = generate_scene(
+        out, preset=preset, seed=seed, name=name, standin=int(standin)
+    )
     click.echo(f"wrote {scene_dir} ({time.perf_counter() - t0:.1f} s)")
 
 

@@ -39,6 +39,40 @@ class Encoder(Protocol):
         ...
 
 
+def standin_version(vocabulary: dict | None) -> int:
+    """Which stand-in a synthetic scene's vocabulary was written for (1 or 2)."""
+    v = (vocabulary or {}).get("version", 1)
+    if v not in (1, 2):
+        raise ValueError(f"unknown stand-in version {v!r} in the vocabulary (1 or 2)")
+    return int(v)
+
+
+def synthetic_encoder(vocabulary=None) -> Encoder:
+    """The stand-in for CLIP of a synthetic scene, by its vocabulary's version.
+
+    Args:
+        vocabulary: path to vocabulary.json, its dict, or None (version 1, generic
+            phrases only). Version 1 is `encoders.synthetic`; version 2 (issue 41)
+            `encoders.synthetic_v2`.
+    """
+    import json
+    from pathlib import Path
+
+    from ptovs.encoders.synthetic import SyntheticEncoder
+
+    vocab = vocabulary
+    if vocabulary is not None and not isinstance(vocabulary, dict):
+        path = Path(vocabulary)
+        if not path.is_file():
+            raise FileNotFoundError(f"vocabulary {path} not found")
+        vocab = json.loads(path.read_text())
+    if standin_version(vocab) == 2:
+        from ptovs.encoders.synthetic_v2 import SyntheticEncoderV2
+
+        return SyntheticEncoderV2(vocab)
+    return SyntheticEncoder(vocab)
+
+
 def get_encoder(name: str, **kwargs) -> Encoder:
     """Build an encoder by name.
 
@@ -53,9 +87,7 @@ def get_encoder(name: str, **kwargs) -> Encoder:
         The encoder.
     """
     if name == "synthetic":
-        from ptovs.encoders.synthetic import SyntheticEncoder
-
-        return SyntheticEncoder(**kwargs)
+        return synthetic_encoder(kwargs.get("vocabulary"))
     if name in ("openclip", "clip"):
         from ptovs.encoders.openclip import OpenClipEncoder
 
@@ -63,4 +95,11 @@ def get_encoder(name: str, **kwargs) -> Encoder:
     raise ValueError(f"unknown encoder {name!r}; choose from {list(ENCODERS)}")
 
 
-__all__ = ["ENCODERS", "Encoder", "get_encoder", "prepare_crop"]
+__all__ = [
+    "ENCODERS",
+    "Encoder",
+    "get_encoder",
+    "prepare_crop",
+    "standin_version",
+    "synthetic_encoder",
+]

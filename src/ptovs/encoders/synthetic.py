@@ -445,14 +445,17 @@ class SyntheticEncoder:
 
     @classmethod
     def from_scene(cls, scene_dir: str | Path) -> SyntheticEncoder:
-        """The encoder of a synthetic scene (reads synthetic/vocabulary.json)."""
+        """The encoder of a synthetic scene (reads synthetic/vocabulary.json): this
+        version or version 2, as the vocabulary says."""
         path = Path(scene_dir) / "synthetic" / "vocabulary.json"
         if not path.is_file():
             raise FileNotFoundError(
                 f"{path} not found; the synthetic encoder needs a scene made by "
                 "`ptovs synth-scene`"
             )
-        return cls(path)
+        from ptovs.encoders import synthetic_encoder
+
+        return synthetic_encoder(path)  # the scene's stand-in version
 
     @property
     def phrases(self) -> list[str]:

@@ -134,12 +134,24 @@ def build_segmenter(config: Config, scene_root: Path | None = None) -> Segmenter
     )
 
 
-def build_encoder(config: Config, synthetic: bool) -> Encoder:
+def _vocabulary(scene_root: Path | None) -> Path | None:
+    path = (
+        None
+        if scene_root is None
+        else Path(scene_root) / "synthetic" / "vocabulary.json"
+    )
+    return path if path is not None and path.is_file() else None
+
+
+def build_encoder(
+    config: Config, synthetic: bool, scene_root: Path | None = None
+) -> Encoder:
     name = config.encoder
     if name == "auto":
         name = "synthetic" if synthetic else "openclip"
     if name == "synthetic":
-        return get_encoder("synthetic")  # the image side needs no vocabulary
+        # the image side needs no phrases, only the scene's stand-in version
+        return get_encoder("synthetic", vocabulary=_vocabulary(scene_root))
     return get_encoder(
         "openclip",
         model=config.clip_model,
@@ -203,7 +215,7 @@ def run(
             raise FileNotFoundError(f"import_dir {folder} is not a folder")
     else:
         segmenter = build_segmenter(config, scene.root)
-        encoder = build_encoder(config, scene.synthetic)
+        encoder = build_encoder(config, scene.synthetic, scene.root)
     for v in scene.train_views():
         if v.name in skip:
             continue
@@ -245,7 +257,25 @@ def _count(inputs: Inputs, config: Config) -> int:
     return len(inputs.scene.train_views())
 
 
-command = stage_command(NAME, VERSION, Config, Inputs, run, count=_count)
+def standin_key(config: Config, scene_ref) -> dict[str, str]:
+    """A scene written for stand-in version 2 (issue 41) keys its features by it
+    (version 1 scenes keep the keys they always had)."""
+    if config.encoder not in ("auto", "synthetic"):
+        return {}
+    path = _vocabulary(scene_ref.load().root)
+    if path is None:
+        return {}
+    import json
+
+    from ptovs.encoders import standin_version
+
+    v = standin_version(json.loads(path.read_text()))
+    return {} if v == 1 else {"standin": str(v)}
+
+
+command = stage_command(
+    NAME, VERSION, Config, Inputs, run, count=_count, extra_key=standin_key
+)
 
 __all__ = [
     "Config",

@@ -402,8 +402,13 @@ def _observations(
 # --------------------------------------------------------------- vocabulary --
 
 
-def scene_vocabulary(world: World, preset: Preset, distractors: list[str]) -> dict:
-    """The stand-in encoder's vocabulary: phrase -> canonical swatch description."""
+def scene_vocabulary(
+    world: World, preset: Preset, distractors: list[str], standin: int = 1
+) -> dict:
+    """The stand-in encoder's vocabulary: phrase -> canonical swatch description.
+
+    `standin` 2 (issue 41) adds what version 2 of the stand-in renders its text
+    side from: the world ("world") and each part phrase's part ids ("parts")."""
     from ptovs.encoders.synthetic import generic_vocabulary
 
     phrases: dict[str, dict] = {}
@@ -433,11 +438,23 @@ def scene_vocabulary(world: World, preset: Preset, distractors: list[str]) -> di
         phrases[phrase] = dict(
             ground, texture=tex.to_dict(), e2=[0.0, 0.0, -1.0], extent=3.0
         )
-    return {
+    out = {
         "version": 1,
         "phrases": phrases,
         "generic": generic_vocabulary(sky=phrases["sky"], ground=ground),
     }
+    if standin == 2:
+        parts: dict[str, list[int]] = {}
+        for part in world.parts:
+            parts.setdefault(part.query, []).append(part.id)
+        for part in world.parts:  # a part's name, where it is no one's query
+            name = part.name.title()
+            if name in phrases and name not in {q.query for q in world.parts}:
+                parts.setdefault(name, []).append(part.id)
+        out.update(version=2, world=world.to_dict(), parts=parts)
+    elif standin != 1:
+        raise ValueError(f"standin must be 1 or 2, got {standin!r}")
+    return out
 
 
 STYLE_AZIMUTHS = (-40.0, 0.0, 40.0)
@@ -601,7 +618,7 @@ class ScenePlan:
     screen: dict[int, PartScreen]  # the screen's verdict on every part
 
 
-def plan_scene(preset: str, seed: int) -> ScenePlan:
+def plan_scene(preset: str, seed: int, standin: int = 1) -> ScenePlan:
     """The plan of (preset, seed): world, cameras, evaluation views, screened queries.
 
     Renders only truth maps and the screen's neutral crops, so every preset's
@@ -641,7 +658,7 @@ def plan_scene(preset: str, seed: int) -> ScenePlan:
         eval_cams,
         truths,
         labelled,
-        lambda w: scene_vocabulary(w, cfg, []),
+        lambda w: scene_vocabulary(w, cfg, [], standin),
         label_mask,
     )
     queries = {p.query: [p.id] for p in world.parts if verdict[p.id].answerable}
@@ -745,6 +762,7 @@ def generate_scene(
     seed: int = 0,
     name: str | None = None,
     progress: bool = True,
+    standin: int = 1,
 ) -> Path:
     """Generate a synthetic landmark scene in PT-OVS layout.
 
@@ -757,6 +775,11 @@ def generate_scene(
         seed: a new seed is a new landmark, new cameras and new appearances.
         name: scene folder name; default f"{preset}_s{seed}".
         progress: show a tqdm bar over images.
+        standin: the version of the stand-in for CLIP the scene is written for
+            (1: the world of issues 1-40; 2: issue 41's, calibrated against
+            CLIP's published failure profile). It decides the screen's verdicts
+            (so the textures) and the vocabulary; cameras and appearances are
+            the same.
 
     Returns:
         The scene directory out/<name>.
@@ -775,7 +798,7 @@ def generate_scene(
     truth_dir = scene / "synthetic" / "truth"
     image_dir = scene / "dense" / "images"
 
-    plan = plan_scene(preset, seed)
+    plan = plan_scene(preset, seed, standin)
     world, cams, queries = plan.world, plan.cams, plan.queries
     eval_ids, distractor = plan.eval_ids, plan.distractor
     n_img = cfg.n_train + cfg.n_test
@@ -820,7 +843,7 @@ def generate_scene(
         f.write("filename\tid\tsplit\tdataset\n")
         for r in records:
             f.write(f"{r['name']}\t{r['image_id']}\t{r['split']}\t{name}\n")
-    vocab = scene_vocabulary(world, cfg, [distractor])
+    vocab = scene_vocabulary(world, cfg, [distractor], standin)
     style, vocab["styles"] = scene_styles(cfg, seed, world)
     _write_json(scene / "synthetic" / "vocabulary.json", vocab)
     parts = world.to_dict()

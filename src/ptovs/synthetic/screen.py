@@ -116,9 +116,9 @@ def crop_margins(
         {part id: [n] float64 margins}, one per labelled instance.
     """
     from ptovs.crop import prepare_crop
-    from ptovs.encoders.synthetic import SyntheticEncoder
+    from ptovs.encoders import synthetic_encoder
 
-    enc = SyntheticEncoder(vocabulary)
+    enc = synthetic_encoder(vocabulary)  # the vocabulary's stand-in version
     by_id = {p.id: p for p in world.parts}
     text = enc.encode_texts([by_id[k].query for k in part_ids]).astype(np.float64)
     negs = enc.encode_texts(list(NEGATIVES)).astype(np.float64)

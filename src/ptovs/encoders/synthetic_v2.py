@@ -1,0 +1,459 @@
+"""The stand-in for CLIP, version 2: it fails the way CLIP fails (issue 41).
+
+Version 1 (`ptovs.encoders.synthetic`) reads mostly colour statistics and matches a
+crop against one texture swatch of its part under neutral light: greyscale and
+sepia cost it half its accuracy, blur, low resolution and noise almost nothing, and
+its shape bias is 0.03. Version 2 is calibrated on crops only, against the targets
+registered in docs/benchmarks.md from CLIP's published figures:
+
+Image side, a fixed function of pixels. The crop is reduced by area to 112 x 112
+(exact black is outside the mask) and described by groups of statistics, each
+standardised against a fixed bank of random swatches, clipped to +-3 and weighted
+(`PARAMS`):
+- silhouette: occupancy of the mask on a 4 x 4 grid, its fill, elongation and
+  orientation (the shape cue, untouched by light and colour);
+- fine texture, on the contrast-normalised luminance: Gabor energy shares at
+  wavelengths 2.5 and 5 px and six orientations (pooled well inside the mask, so
+  the mask's own edge does not count), an orientation histogram of the gradient,
+  its mean magnitude, and the histogram of the normalised values (two-tone stripes
+  against noise): what blur, low resolution, noise and JPEG take away;
+- coarse texture: Gabor energy shares at 10 and 20 px;
+- colour, a little: the hue of the mean opponent colour, the spread of colours
+  about it, a saturation-weighted hue histogram, all blind to saturation (so to
+  contrast); greyscale and a colour cast cost a little, not half;
+- (luminance level and a 4 x 4 luminance layout are computed, weighted 0: they
+  follow the light, not the part);
+- a fixed pseudo-random perturbation keyed by the crop's own coarse content (a hash
+  of its 8 x 8 colour grid, quantised): the same pixels always get the same error,
+  another light or another view gets another one, so appearances err differently.
+  Its size grows with the crop's blur deficit (`blur_deficit`: the detail the crop
+  lacks at the two finest scales compared with a sharp render), as CLIP's features
+  drift on blurred and upsampled crops.
+The statistics are projected to 512-d with a seeded Gaussian matrix and normalised;
+the modality offset is version 1's.
+
+Text side, a category description, not one instance's template: a part's phrase
+embeds as the normalised mean content of its part rendered alone (masked and cut
+as a segment crop) from the views where it shows, under several ordinary daylight
+appearances, and in several instances of its category (its own texture and
+variants with other colours, frequencies and offsets of the same pattern).
+Generic phrases, "sky", styles and unknown phrases behave as in version 1.
+
+Deterministic on one machine: float64 numpy and per-crop OpenCV filters and
+resizes (bit for bit across batch sizes and runs).
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ptovs.encoders import synthetic as v1
+from ptovs.synthetic.world import (
+    World,
+    neutral_appearance,
+    render,
+    render_swatch,
+    sky_swatch,
+)
+from ptovs.synthetic.world.appearance import Appearance, sample_appearance
+from ptovs.synthetic.world.swatches import landmark_camera
+from ptovs.synthetic.world.textures import Texture
+
+DIM = v1.DIM
+SEED = 20261126
+VERSION = 2
+_R = 112
+WAVELENGTHS = (2.5, 5.0, 10.0, 20.0)  # Gabor wavelengths, pixels at _R (x2 at 224)
+N_FINE = 2  # the first N_FINE wavelengths are the "fine" group
+THETAS = tuple(np.arange(6) * (np.pi / 6))
+N_HUE = 6
+ZCLIP = 3.0  # standardised statistics are clipped: no one cell of a grid dominates
+LN_BINS = np.linspace(-2.0, 2.0, 9)  # histogram of the normalised luminance
+
+# calibrated on crops of calibration seeds 300-305 (bench/standin_profile.py)
+PARAMS: dict[str, float] = {
+    "w_colour": 0.7,  # hue and colour spread (blind to saturation and contrast)
+    "w_lum": 0.0,  # mean and spread of luminance: off (lighting, not identity)
+    "w_silhouette": 0.4,
+    "w_layout": 0.0,  # luminance on a 4 x 4 grid: off (it follows the light's side)
+    "w_fine": 2.5,  # Gabor energies at 2.5 and 5 px, orientations, value histogram
+    "w_coarse": 1.0,  # Gabor energies at 10 and 20 px
+    "floor": 0.005,  # contrast normalisation: (L - mean) / (sd + floor)
+    "noise": 0.2,  # the keyed perturbation's norm, relative to the features'
+    "t1": -1.2,  # blur_deficit's thresholds and gains
+    "t2": -0.9,
+    "k1": 4.5,
+    "k2": 7.5,
+}
+_GROUPS = (  # (name, size)
+    ("colour", 2 + 2 + 6),
+    ("lum", 2),
+    ("silhouette", 16 + 4),
+    ("layout", 16),
+    ("fine", N_FINE * len(THETAS) + 6 + 1 + len(LN_BINS)),
+    ("coarse", (len(WAVELENGTHS) - N_FINE) * len(THETAS)),
+)
+N_FEATURES = sum(n for _, n in _GROUPS)
+
+
+def _area(x: np.ndarray, n: int) -> np.ndarray:
+    return cv2.resize(x, (n, n), interpolation=cv2.INTER_AREA).astype(np.float64)
+
+
+@functools.lru_cache(maxsize=1)
+def _gabors() -> list[list[tuple[np.ndarray, np.ndarray]]]:
+    """(even, odd) Gabor kernels per wavelength and orientation, zero-mean, unit L2."""
+    out = []
+    for lam in WAVELENGTHS:
+        sigma = 0.56 * lam
+        k = 2 * int(math.ceil(2.5 * sigma)) + 1
+        row = []
+        for th in THETAS:
+            pair = []
+            for psi in (0.0, math.pi / 2):
+                g = cv2.getGaborKernel((k, k), sigma, th, lam, 1.0, psi, cv2.CV_64F)
+                g = g - g.mean()
+                pair.append(g / np.sqrt((g * g).sum()))
+            row.append((pair[0], pair[1]))
+        out.append(row)
+    return out
+
+
+def _grid(v: np.ndarray, m: np.ndarray, g: int) -> np.ndarray:
+    """Masked means of v over a g x g grid (0 where a cell is empty)."""
+    n = v.shape[0] // g
+    vs = (v * m).reshape(g, n, g, n).sum(axis=(1, 3))
+    ms = m.reshape(g, n, g, n).sum(axis=(1, 3))
+    return np.where(ms > 0, vs / np.maximum(ms, 1e-9), 0.0).ravel()
+
+
+def _one(crop: np.ndarray, floor: float) -> np.ndarray:
+    x = np.ascontiguousarray(crop, dtype=np.float32)
+    valid = (cv2.cvtColor(x, cv2.COLOR_RGB2GRAY) > 0).astype(np.float32)
+    w = _area(valid, _R)
+    col = _area(x, _R)
+    m = (w >= 0.5).astype(np.float64)
+    msum = m.sum() + 1e-9
+    c = np.clip(col / np.maximum(w, 1e-6)[..., None], 0.0, 1.0)
+    L = 0.299 * c[..., 0] + 0.587 * c[..., 1] + 0.114 * c[..., 2]
+
+    def pool(v, mm=m, s=msum):
+        return float((v * mm).sum() / s)
+
+    out: list[float] = []
+    # colour: the hue of the crop's mean opponent colour and a saturation-weighted
+    # hue histogram, both blind to how saturated (contrasty) the colour is
+    o1 = c[..., 0] - c[..., 1]
+    o2 = 0.5 * (c[..., 0] + c[..., 1]) - c[..., 2]
+    sat = np.sqrt(o1 * o1 + o2 * o2) + 1e-9
+    mo1, mo2 = pool(o1), pool(o2)
+    ms = np.sqrt(mo1 * mo1 + mo2 * mo2) + 1e-3
+    out += [mo1 / ms, mo2 / ms]
+    # how far the colours spread about their mean (two-colour patterns), relative
+    # to the mean saturation: also blind to contrast
+    msat = pool(sat)
+    out += [
+        np.sqrt(pool((o1 - mo1) ** 2)) / (msat + 0.02),
+        np.sqrt(pool((o2 - mo2) ** 2)) / (msat + 0.02),
+    ]
+    hue = np.arctan2(o2, o1)
+    wsat = (sat * m).sum() + 1e-9
+    for k in range(N_HUE):
+        d = np.cos(hue - 2 * math.pi * k / N_HUE)
+        out.append(float((np.maximum(d, 0.0) ** 2 * sat * m).sum() / wsat))
+    mu = pool(L)
+    sd = np.sqrt(pool((L - mu) ** 2))
+    out += [mu, sd]
+    # silhouette: occupancy grid and the mask's second moments
+    out += list(_grid(m, np.ones_like(m), 4))
+    yy, xx = np.mgrid[0:_R, 0:_R] / (_R - 1.0) - 0.5
+    my, mx = pool(yy), pool(xx)
+    cyy, cxx = pool((yy - my) ** 2), pool((xx - mx) ** 2)
+    cxy = pool((yy - my) * (xx - mx))
+    tr = cyy + cxx + 1e-9
+    out += [
+        msum / (_R * _R),
+        np.sqrt((cxx - cyy) ** 2 + 4 * cxy**2) / tr,
+        (cxx - cyy) / tr,
+        2 * cxy / tr,
+    ]
+    # layout and texture on the contrast-normalised luminance
+    Ln = (L - mu) / (sd + floor) * m
+    out += list(_grid(Ln, m, 4))
+    m8 = m.astype(np.uint8)
+    energy = np.zeros((len(WAVELENGTHS), len(THETAS)))
+    for i, lam in enumerate(WAVELENGTHS):
+        r = int(math.ceil(1.4 * lam)) if i < N_FINE else max(1, int(round(lam / 2)))
+        mi = cv2.erode(m8, np.ones((2 * r + 1, 2 * r + 1), np.uint8)).astype(np.float64)
+        if mi.sum() < 4:
+            mi = m
+        si = mi.sum() + 1e-9
+        for j, (even, odd) in enumerate(_gabors()[i]):
+            re = cv2.filter2D(Ln, cv2.CV_64F, even, borderType=cv2.BORDER_REPLICATE)
+            im = cv2.filter2D(Ln, cv2.CV_64F, odd, borderType=cv2.BORDER_REPLICATE)
+            energy[i, j] = pool(re * re + im * im, mi, si)
+    total = energy.sum() + 1e-9
+    share = energy / total
+    coarse = list(share[N_FINE:].ravel())
+    out += list(share[:N_FINE].ravel())
+    gy, gx = np.gradient(Ln)
+    mag2 = gx * gx + gy * gy
+    c2 = (gx * gx - gy * gy) / (mag2 + 1e-12)
+    s2 = 2.0 * gx * gy / (mag2 + 1e-12)
+    mi = cv2.erode(m8, np.ones((3, 3), np.uint8)).astype(np.float64)
+    wm = mi * np.sqrt(mag2)
+    ws = wm.sum() + 1e-9
+    for phi in np.arange(6) * (np.pi / 6):
+        b = np.maximum(c2 * np.cos(2 * phi) + s2 * np.sin(2 * phi), 0.0) ** 4
+        out.append(float((b * wm).sum() / ws))
+    out.append(pool(np.sqrt(mag2), mi, mi.sum() + 1e-9))
+    # the pattern's value distribution (two-tone stripes against noise)
+    zn = (L - mu) / (sd + floor)
+    for k in range(len(LN_BINS)):
+        out.append(pool(v1._hat(zn, LN_BINS, k)))
+    out += coarse  # the order of _GROUPS: ..., fine, coarse
+    return np.asarray(out, np.float64)
+
+
+def _key(crop: np.ndarray) -> int:
+    """Seed of a crop's perturbation: its 8 x 8 colour grid, quantised to 1/16."""
+    g = cv2.resize(
+        np.ascontiguousarray(crop, np.float32), (8, 8), interpolation=cv2.INTER_AREA
+    )
+    q = np.floor(np.clip(g, 0.0, 1.0) * 16.0).astype(np.uint8)
+    return int.from_bytes(hashlib.sha256(q.tobytes()).digest()[:8], "little")
+
+
+def raw_features(crops: np.ndarray, params: dict | None = None) -> np.ndarray:
+    """[B, N_FEATURES] float64 statistics of crops [B, S, S, 3] in [0, 1]."""
+    p = PARAMS if params is None else params
+    out = np.stack([_one(c, p["floor"]) for c in crops])
+    assert out.shape[1] == N_FEATURES
+    return out
+
+
+@functools.lru_cache(maxsize=1)
+def _bank() -> np.ndarray:
+    return raw_features(np.stack(v1._bank_swatches()), PARAMS)
+
+
+@functools.lru_cache(maxsize=1)
+def _projection() -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(SEED + 3)
+    P = rng.standard_normal((N_FEATURES, DIM)) / np.sqrt(DIM)
+    return P, v1._fixed()[4]
+
+
+def _offset(group: str) -> int:
+    out = 0
+    for name, n in _GROUPS:
+        if name == group:
+            return out
+        out += n
+    raise KeyError(group)
+
+
+def blur_deficit(raw: np.ndarray, params: dict | None = None) -> np.ndarray:
+    """How much finer detail a crop lacks than a sharp photo has, >= 0 per crop.
+
+    From the spectral slope at the two finest scales: log10 of the Gabor energy
+    at wavelength 2.5 px over that at 5 px, and of 5 px over 10 px (at _R). A
+    sharp render sits near -1.0 and -0.8; blur, a low-resolution source and an
+    upsampled small crop fall below the thresholds. CLIP's features drift off
+    their manifold on such crops (its accuracy halves near blur sigma 5 px); here
+    the crop's keyed perturbation grows with the deficit.
+    """
+    p = PARAMS if params is None else params
+    nt = len(THETAS)
+    f, c = _offset("fine"), _offset("coarse")
+    e1 = raw[:, f : f + nt].sum(axis=1)
+    e2 = raw[:, f + nt : f + 2 * nt].sum(axis=1)
+    e3 = raw[:, c : c + nt].sum(axis=1)
+    l1 = np.log10((e1 + 1e-9) / (e2 + 1e-9))
+    l2 = np.log10((e2 + 1e-9) / (e3 + 1e-9))
+    return p["k1"] * np.maximum(p["t1"] - l1, 0.0) + p["k2"] * np.maximum(
+        p["t2"] - l2, 0.0
+    )
+
+
+def content(crops: np.ndarray, params: dict | None = None) -> np.ndarray:
+    """Unit content vectors [B, 512] float64 of crops [B, S, S, 3]."""
+    p = PARAMS if params is None else params
+    bank = _bank() if params is None else raw_features(np.stack(v1._bank_swatches()), p)
+    mean, scale = bank.mean(axis=0), np.maximum(bank.std(axis=0), 1e-3)
+    gw = np.concatenate(
+        [np.full(n, p[f"w_{name}"] / np.sqrt(n)) for name, n in _GROUPS]
+    )
+    raw = raw_features(crops, p)
+    z = np.clip((raw - mean) / scale, -ZCLIP, ZCLIP) * gw
+    norm = float(np.sqrt((gw * gw).sum()))
+    amp = p["noise"] * (1.0 + blur_deficit(raw, p))
+    for b, crop in enumerate(crops):
+        e = np.random.default_rng(_key(crop)).standard_normal(N_FEATURES)
+        z[b] += amp[b] * norm * e / np.sqrt(N_FEATURES)
+    P, _ = _projection()
+    acc = np.zeros((len(z), DIM))
+    for k in range(N_FEATURES):  # fixed-order projection, batch independent
+        acc += z[:, k : k + 1] * P[k]
+    return v1._normalise(acc)
+
+
+# ------------------------------------------------------------- text side --
+
+TEXT_AZIMUTHS = tuple(range(-150, 181, 30))
+TEXT_VIEWS = 3  # the part's best views (most pixels) among TEXT_AZIMUTHS
+TEXT_PX = 256
+N_INSTANCES = 3  # the part's own texture and this many variants
+N_DAYLIGHT = 3
+
+
+@functools.lru_cache(maxsize=1)
+def daylight_appearances() -> tuple[Appearance, ...]:
+    """The text side's ordinary lights: neutral and N_DAYLIGHT - 1 fixed draws."""
+    rng = np.random.default_rng(SEED + 5)
+    out = [neutral_appearance()]
+    while len(out) < N_DAYLIGHT:
+        a = sample_appearance(rng)
+        if a.sky in ("day", "overcast") and not a.hard:
+            out.append(a)
+    return tuple(out)
+
+
+def instances(tex: Texture, part_id: int) -> list[Texture]:
+    """The part's texture and N_INSTANCES variants of the same pattern."""
+    rng = np.random.default_rng([SEED + 6, part_id])
+    out = [tex]
+    for k in range(N_INSTANCES):
+        jit = rng.uniform(0.8, 1.2, 3) * rng.uniform(0.85, 1.15)
+        out.append(
+            replace(
+                tex,
+                base=tuple(
+                    float(np.clip(c * j, 0.02, 1.0))
+                    for c, j in zip(tex.base, jit, strict=True)
+                ),
+                accent=tuple(
+                    float(np.clip(c * j, 0.02, 1.0))
+                    for c, j in zip(tex.accent, jit[::-1], strict=True)
+                ),
+                freq=float(tex.freq * rng.uniform(0.8, 1.25)),
+                offset=tuple(float(x) for x in rng.uniform(0.0, 3.0, 3)),
+                seed=int(tex.seed) + 101 * (k + 1),
+            )
+        )
+    return out
+
+
+_PART_CONTENT: dict[str, np.ndarray] = {}  # bounded: cleared past 256 entries
+
+
+def part_content(world: World, part_id: int) -> np.ndarray:
+    """Mean content of `part_crops`, cached by what those crops depend on: the
+    world's geometry and this part's texture (other parts' textures never show
+    in this part's pixels), so a screen that redraws one part re-renders one."""
+    d = world.to_dict()
+    for q in d["parts"]:
+        if q["id"] != part_id:
+            q.pop("texture", None)
+            q["name"] = q["query"] = ""
+    key = hashlib.sha256(
+        json.dumps([d, part_id, VERSION, TEXT_PX], sort_keys=True).encode()
+    ).hexdigest()
+    if key not in _PART_CONTENT:
+        if len(_PART_CONTENT) >= 256:
+            _PART_CONTENT.clear()
+        out = content(np.stack(part_crops(world, part_id))).mean(axis=0)
+        out.flags.writeable = False
+        _PART_CONTENT[key] = out
+    return _PART_CONTENT[key]
+
+
+def part_crops(world: World, part_id: int) -> list[np.ndarray]:
+    """The part alone, as segment crops: best views x daylight x instances."""
+    from ptovs.crop import prepare_crop
+
+    views = []
+    for az in TEXT_AZIMUTHS:
+        cam = landmark_camera(world, float(az), TEXT_PX)
+        v = render(world, cam, neutral_appearance(), aa=1, shadows=False)
+        n = int((v.part_id == part_id).sum())
+        if n >= 16:
+            views.append((n, az, cam))
+    views = sorted(views, key=lambda t: (-t[0], t[1]))[:TEXT_VIEWS]
+    part = next(p for p in world.parts if p.id == part_id)
+    crops = []
+    for tex in instances(part.texture, part_id):
+        w = replace(
+            world,
+            parts=[
+                replace(p, texture=tex) if p.id == part_id else p for p in world.parts
+            ],
+        )
+        for _, _, cam in views:
+            for app in daylight_appearances():
+                v = render(w, cam, app, aa=1)
+                m = v.part_id == part_id
+                img = np.maximum(v.image.astype(np.float32) / 255.0, 1.0 / 255.0)
+                crops.append(prepare_crop(img, m))
+    return crops
+
+
+class SyntheticEncoderV2(v1.SyntheticEncoder):
+    """Stand-in for CLIP, version 2 (module docstring). The vocabulary is version 1's
+    plus "world" (the World dict) and "parts" ({phrase: [part ids]}): a listed
+    phrase embeds as its parts' category description (`part_crops`)."""
+
+    name = "synthetic-v2"
+
+    def __init__(self, vocabulary: str | Path | dict | None = None) -> None:
+        super().__init__(vocabulary)
+        vocab = (
+            vocabulary
+            if isinstance(vocabulary, dict)
+            else (json.loads(Path(vocabulary).read_text()) if vocabulary else {})
+        )
+        self._world = World.from_dict(vocab["world"]) if "world" in vocab else None
+        self._parts: dict[str, list[int]] = {
+            k.strip().lower(): list(v) for k, v in vocab.get("parts", {}).items()
+        }
+
+    def encode_images(self, crops: np.ndarray) -> np.ndarray:
+        crops = np.asarray(crops)
+        if crops.ndim != 4 or crops.shape[-1] != 3:
+            raise ValueError(f"crops must be [B, S, S, 3], got {crops.shape}")
+        if len(crops) == 0:
+            return np.zeros((0, DIM), np.float32)
+        return v1._embed(content(crops), 0)
+
+    def _text_content(self, phrase: str) -> np.ndarray:
+        key = phrase.strip().lower()
+        if self._world is not None and key in self._parts:
+            acc = sum(part_content(self._world, pid) for pid in self._parts[key])
+            return v1._normalise(acc)
+        if key == "sky" or key in self._generic or key in self._lower:
+            return self._v2_swatch(phrase)
+        return super()._text_content(phrase)
+
+    def _v2_swatch(self, phrase: str) -> np.ndarray:
+        key = phrase.strip()
+        desc = self._phrases.get(key, self._lower.get(key.lower()))
+        items = (
+            [{"weight": 1.0, "swatch": desc}]
+            if desc is not None
+            else self._generic.get(
+                key.lower(), [{"weight": 1.0, "swatch": sky_swatch()}]
+            )
+        )
+        acc = np.zeros(DIM)
+        for it in items:
+            img = render_swatch(it["swatch"])
+            acc = acc + float(it["weight"]) * content(img[None])[0]
+        return v1._normalise(acc)

@@ -1,0 +1,170 @@
+"""The stand-in for CLIP, version 2 (issue 41): how it fails, not only that it works."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from ptovs.crop import prepare_crop
+from ptovs.encoders import synthetic_v2 as v2
+from ptovs.synthetic.generate import PRESETS, plan_scene, rerender, scene_vocabulary
+from ptovs.synthetic.world import neutral_appearance
+
+PRESET = "tiny"
+
+
+@pytest.fixture(scope="module")
+def world_crops():
+    """A tiny world, its encoder (small text renders) and clean part crops."""
+    plan = plan_scene(PRESET, 3)
+    world = plan.world
+    parts: dict[str, list[int]] = {}
+    for p in world.parts:
+        parts.setdefault(p.query, []).append(p.id)
+    vocab = scene_vocabulary(world, PRESETS[PRESET], [])
+    crops, labels = [], []
+    for i, cam in enumerate(plan.cams[:6]):
+        rec = {"image_id": i, **cam.to_dict()}
+        v, _ = rerender(world, rec, "neutral", "none", seed=0)
+        for k in np.unique(v.part_id[v.part_id >= 0]):
+            m = v.part_id == k
+            if m.sum() >= 40:
+                crops.append(prepare_crop(v.image, m))
+                labels.append(int(k))
+    return world, {**vocab, "world": world.to_dict(), "parts": parts}, crops, labels
+
+
+@pytest.fixture(scope="module")
+def enc(world_crops, monkeypatch_module):
+    monkeypatch_module.setattr(v2, "TEXT_PX", 96)  # small text renders: seconds
+    return v2.SyntheticEncoderV2(world_crops[1])
+
+
+@pytest.fixture(scope="module")
+def monkeypatch_module():
+    mp = pytest.MonkeyPatch()
+    yield mp
+    mp.undo()
+
+
+def test_shapes_norms_and_determinism(world_crops, enc) -> None:
+    crops = np.stack(world_crops[2][:5])
+    a = enc.encode_images(crops)
+    assert a.shape == (5, v2.DIM) and a.dtype == np.float32
+    assert np.allclose(np.linalg.norm(a, axis=1), 1.0, atol=1e-5)
+    # batch independent and repeatable, bit for bit
+    b = np.concatenate([enc.encode_images(crops[k : k + 1]) for k in range(5)])
+    assert np.array_equal(a, b)
+    assert np.array_equal(a, enc.encode_images(crops))
+    assert enc.encode_images(np.zeros((0, 224, 224, 3), np.float32)).shape == (0, 512)
+    with pytest.raises(ValueError):
+        enc.encode_images(crops[0])
+
+
+def test_degenerate_crops_stay_finite(enc) -> None:
+    flat = np.full((224, 224, 3), 0.5, np.float32)  # constant: no texture at all
+    speck = np.zeros((224, 224, 3), np.float32)
+    speck[110:113, 110:113] = 1.0  # nine pixels inside the mask
+    bright = np.ones((224, 224, 3), np.float32)
+    out = enc.encode_images(np.stack([flat, speck, bright]))
+    assert np.isfinite(out).all()
+    assert np.allclose(np.linalg.norm(out, axis=1), 1.0, atol=1e-5)
+
+
+def test_text_side_is_a_category(world_crops, enc) -> None:
+    world, _, crops, labels = world_crops
+    phrases = sorted({p.query for p in world.parts})
+    text = enc.encode_texts(phrases)
+    assert text.shape == (len(phrases), v2.DIM)
+    # the text side renders the part itself (instances x views x daylight)
+    pid = world.parts[0].id
+    n = len(v2.part_crops(world, pid))
+    assert n % (len(v2.daylight_appearances()) * (v2.N_INSTANCES + 1)) == 0
+    variants = v2.instances(world.parts[0].texture, pid)
+    assert len({t.to_dict().__repr__() for t in variants}) == v2.N_INSTANCES + 1
+    # the part's own phrase wins on most clean crops (closed set)
+    idx = {p.id: phrases.index(p.query) for p in world.parts}
+    pred = np.argmax(enc.encode_images(np.stack(crops)) @ text.T, axis=1)
+    acc = float(np.mean([idx[k] == q for k, q in zip(labels, pred, strict=True)]))
+    assert acc >= 1.0 / len(phrases) + 0.3, acc
+    # generic phrases and unknown phrases still embed
+    other = enc.encode_texts(["object", "sky", "no such phrase"])
+    assert np.isfinite(other).all()
+
+
+def test_blur_deficit_grows_with_blur(world_crops) -> None:
+    crops = [c for c in world_crops[2] if (c.max(axis=2) > 0).mean() > 0.2][:6]
+    assert crops
+
+    def deficit(sigma: float) -> np.ndarray:
+        out = []
+        for c in crops:
+            inside = c.max(axis=2) > 0
+            b = cv2.GaussianBlur(c, (0, 0), sigma) if sigma else c
+            b = np.clip(b, 1 / 255, 1).astype(np.float32)
+            b[~inside] = 0
+            out.append(b)
+        return v2.blur_deficit(v2.raw_features(np.stack(out)))
+
+    d0, d3, d6 = deficit(0.0), deficit(3.0), deficit(6.0)
+    assert (d0 >= 0).all()
+    assert d3.mean() > d0.mean() + 0.5
+    assert d6.mean() >= d3.mean() - 0.5
+
+
+def test_colour_is_a_weak_cue(world_crops, enc) -> None:
+    """Greyscale moves a crop's embedding less than a strong blur does (CLIP's
+    order), and the keyed perturbation differs between two lights of one crop."""
+    crops = np.stack(world_crops[2][:8])
+    grey = crops.mean(axis=3, keepdims=True).repeat(3, axis=3)
+    grey[crops.max(axis=3) == 0] = 0
+    blur = np.stack(
+        [
+            cv2.GaussianBlur(c, (0, 0), 6.0) * (c.max(axis=2, keepdims=True) > 0)
+            for c in crops
+        ]
+    ).astype(np.float32)
+    a = enc.encode_images(crops)
+    d_grey = 1 - (a * enc.encode_images(grey)).sum(1)
+    d_blur = 1 - (a * enc.encode_images(np.clip(blur, 0, 1))).sum(1)
+    assert d_grey.mean() < d_blur.mean(), (d_grey.mean(), d_blur.mean())
+    assert v2._key(crops[0]) == v2._key(crops[0].copy())
+    assert v2._key(crops[0]) != v2._key(np.clip(crops[0] * 0.7, 0, 1))
+
+
+def test_daylight_appearances_are_fixed() -> None:
+    a, b = v2.daylight_appearances(), v2.daylight_appearances()
+    assert a == b and a[0] == neutral_appearance() and len(a) == v2.N_DAYLIGHT
+    assert all(x.sky != "night" and not x.hard for x in a)
+
+
+def test_a_scene_written_for_version_2(tmp_path, monkeypatch) -> None:
+    """`synth-scene --standin 2`: the vocabulary says so, every stage's encoder
+    follows it, and extract-features keys its features by it."""
+    import json
+    from types import SimpleNamespace
+
+    from ptovs.encoders import get_encoder, standin_version
+    from ptovs.encoders.synthetic import SyntheticEncoder
+    from ptovs.stages.extract_features import Config, build_encoder, standin_key
+    from ptovs.synthetic import generate_scene
+
+    monkeypatch.setattr(v2, "TEXT_PX", 96)
+    scene = generate_scene(tmp_path, "tiny", 5, progress=False, standin=2)
+    vocab = json.loads((scene / "synthetic" / "vocabulary.json").read_text())
+    assert standin_version(vocab) == 2 and vocab["parts"] and "world" in vocab
+    assert isinstance(SyntheticEncoder.from_scene(scene), v2.SyntheticEncoderV2)
+    assert isinstance(build_encoder(Config(), True, scene), v2.SyntheticEncoderV2)
+    ref = SimpleNamespace(load=lambda: SimpleNamespace(root=scene))
+    assert standin_key(Config(), ref) == {"standin": "2"}
+    assert standin_key(Config(encoder="openclip"), ref) == {}
+    # a version 1 vocabulary (every scene made before issue 41) keys as before
+    old = tmp_path / "old"
+    (old / "synthetic").mkdir(parents=True)
+    (old / "synthetic" / "vocabulary.json").write_text(json.dumps({"version": 1}))
+    ref1 = SimpleNamespace(load=lambda: SimpleNamespace(root=old))
+    assert standin_key(Config(), ref1) == {}
+    assert not isinstance(get_encoder("synthetic"), v2.SyntheticEncoderV2)
+    with pytest.raises(ValueError, match="stand-in version"):
+        standin_version({"version": 7})
