@@ -43,6 +43,10 @@ at a time on two cores, one thread each), the instrument measures, on every
   no-uncertainty-ae, lift-codes   on request only (--labels): Table 3 row 3
                       (train-ae unweighted), the code-space lift (each Gaussian's
                       mean target code)
+  ideal-novel         on request only: the full method with the photos' own
+                      features in the original slot and clean features (the
+                      oracle's) in the novel slots: the headroom of the
+                      multi-appearance features (issue 41)
   on request only (--labels; `make bench-upstream` on the test seeds):
   2d-old              2d as before issue 40 (graph segments, fixed 20/7 px filters)
   male-old            the full method with those defaults
@@ -110,7 +114,10 @@ CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
             "langsplat",
         )
     },
-    "oracle": ("male", {}),  # + the clean features' import_dir (`oracle_features`)
+    "oracle": ("male", {}),  # + the clean features' import_dir (`import_features`)
+    # the headroom of issue 41: the photos' own features in the original slot,
+    # clean features in the novel slots (`import_features`)
+    "ideal-novel": ("male", {}),
     # the defaults before issue 40 (one graph pass per level, fixed 20/7 px filters)
     "male-old": (
         "male",
@@ -134,7 +141,7 @@ UPSTREAM_LABELS = (
     "langsplat-truth",
     "no-multi-appearance-truth",
 )
-OPTIONAL_LABELS = ("no-uncertainty-ae", "lift-codes", *UPSTREAM_LABELS)
+OPTIONAL_LABELS = ("no-uncertainty-ae", "lift-codes", "ideal-novel", *UPSTREAM_LABELS)
 CHAIN_LABELS.update({v: (v, {}) for v in ("no-uncertainty-ae", "lift-codes")})
 FEATURE_LABELS = ("2d", "2d-ae", "2d-nosmooth", "2d-best", "2d-truth", "2d-old")
 OLD_SEGMENTS = ["images=orig", "segmenter=graph"]  # extract-features, for 2d-old
@@ -206,15 +213,29 @@ def _chain_pairs(ctx, ref, variant: str, sets: dict) -> tuple[list[dict], dict]:
     return pairs, secs
 
 
-def _oracle_folder(ref, scene: Path, work: Path) -> Path:
-    return work / "oracle" / f"{scene.name}-{ref.key()[:12]}" / "features"
+IMPORT_LABELS = ("oracle", "ideal-novel")  # chains on imported features
+
+
+def _import_folder(ref, scene: Path, work: Path, label: str) -> Path:
+    return work / label / f"{scene.name}-{ref.key()[:12]}" / "features"
+
+
+def slot_sources(label: str, slots: list[str]) -> dict[str, str]:
+    """Whose features each appearance slot of an import label gets: "clean" (the
+    photo re-rendered under neutral light without occluders) or "own" (the
+    photo's, as the full method extracts them)."""
+    if label not in IMPORT_LABELS:
+        raise ValueError(f"{label!r} imports no features")
+    own_orig = label == "ideal-novel"
+    return {app: ("own" if own_orig and app == "orig" else "clean")
+            for app in ["orig", *slots]}  # fmt: skip
 
 
 def _label_chain(ref, scene: Path, work: Path, label: str) -> tuple[str, dict]:
     """The ptovs.variants name and the --set items a chain label runs."""
     variant, sets = CHAIN_LABELS[label]
-    if label == "oracle":
-        folder = _oracle_folder(ref, scene, work).resolve()
+    if label in IMPORT_LABELS:
+        folder = _import_folder(ref, scene, work, label).resolve()
         sets = {"extract-features": [f"import_dir={folder}"]}
     return variant, sets
 
@@ -239,23 +260,25 @@ def label_key(ctx, ref, scene: Path, work: Path, label: str) -> str:
     return Chain(ctx, ref, variant_sets(variant, sets)).key("evaluate")
 
 
-def oracle_features(ctx, ref, scene: Path, work: Path) -> Path:
-    """The clean-feature oracle's LangSplat folder for `scene` (cached).
+def import_features(ctx, ref, scene: Path, work: Path, label: str) -> Path:
+    """The LangSplat folder an import label's chain reads (cached).
 
-    Every photo re-rendered clean (`clean_scene`), its segment features extracted
-    exactly as the photos' are, written for the original and every render slot of
-    the full method's chain (so uncertainty is 0 and every slot sees clean
-    features).
+    Every photo re-rendered clean (`clean_scene`, shared by both labels), its
+    segment features extracted exactly as the photos' are; written for the original
+    and every render slot of the full method's chain as `slot_sources` says:
+    `oracle` clean everywhere (so uncertainty is 0 and every slot sees clean
+    features); `ideal-novel` the photo's own features in the original slot and
+    clean ones in the novel slots (the best any novel appearance could give).
     """
     from ptovs.artifacts import read_json_dataset
     from ptovs.features import SegmentFeatures, langsplat_suffix, write_langsplat
     from ptovs.stage import Chain, RunContext, resolve_scene
     from ptovs.synthetic.generate import clean_scene
 
-    folder = _oracle_folder(ref, scene, work)
-    root = folder.parent
+    folder = _import_folder(ref, scene, work, label)
     if (folder / "done").is_file():
         return folder
+    root = _import_folder(ref, scene, work, "oracle").parent
     clean = clean_scene(scene, root / "data" / scene.name)
     octx = RunContext(root / "work", ctx.config)
     oref = resolve_scene(octx, None, clean)
@@ -266,12 +289,21 @@ def oracle_features(ctx, ref, scene: Path, work: Path) -> Path:
     slots = read_json_dataset(renders.root()["slots_json"])["slots"]
     renders.close()
     novel = [s for s in slots if s != "self"]
+    source = slot_sources(label, slots)
+    own = None
+    if "own" in source.values():
+        own, _ = _build(Chain(ctx, ref), "extract-features")
     for name in art.names():
-        f = SegmentFeatures.from_view(art[name], "orig")
         stem = Path(name).stem
-        for app in ["orig", *slots]:
-            write_langsplat(folder, stem, f, levels, langsplat_suffix(app, novel))
+        feats = {"clean": SegmentFeatures.from_view(art[name], "orig")}
+        if own is not None:
+            feats["own"] = SegmentFeatures.from_view(own[name], "orig")
+        for app, src in source.items():
+            write_langsplat(folder, stem, feats[src], levels,
+                            langsplat_suffix(app, novel))  # fmt: skip
     art.close()
+    if own is not None:
+        own.close()
     (folder / "done").write_text("ok\n")
     return folder
 
@@ -450,8 +482,8 @@ def run_seed(args: argparse.Namespace, seed: int) -> None:
                 wall = time.perf_counter() - t0
                 res["labels"][lab] = _entry(pairs, {}, wall, keys[lab])
         else:
-            if label == "oracle":
-                oracle_features(ctx, ref, scene, args.work)
+            if label in IMPORT_LABELS:
+                import_features(ctx, ref, scene, args.work, label)
             variant, sets = _label_chain(ref, scene, args.work, label)
             pairs, secs = _chain_pairs(ctx, ref, variant, sets)
             wall = time.perf_counter() - t0
