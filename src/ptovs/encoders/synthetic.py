@@ -435,6 +435,7 @@ class SyntheticEncoder:
             raise ValueError(
                 "vocabulary['phrases'] must map phrase -> swatch description"
             )
+        self._vocab = vocab  # as read: version 2 reads its world and parts from it
         self._phrases: dict[str, dict] = dict(vocab.get("phrases", {}))
         self._lower = {k.strip().lower(): v for k, v in self._phrases.items()}
         generic = vocab.get("generic") or generic_vocabulary()

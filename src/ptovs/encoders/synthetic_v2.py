@@ -415,11 +415,7 @@ class SyntheticEncoderV2(v1.SyntheticEncoder):
 
     def __init__(self, vocabulary: str | Path | dict | None = None) -> None:
         super().__init__(vocabulary)
-        vocab = (
-            vocabulary
-            if isinstance(vocabulary, dict)
-            else (json.loads(Path(vocabulary).read_text()) if vocabulary else {})
-        )
+        vocab = self._vocab
         self._world = World.from_dict(vocab["world"]) if "world" in vocab else None
         self._parts: dict[str, list[int]] = {
             k.strip().lower(): list(v) for k, v in vocab.get("parts", {}).items()
@@ -454,6 +450,15 @@ class SyntheticEncoderV2(v1.SyntheticEncoder):
         )
         acc = np.zeros(DIM)
         for it in items:
-            img = render_swatch(it["swatch"])
-            acc = acc + float(it["weight"]) * content(img[None])[0]
+            key = json.dumps(it["swatch"], sort_keys=True)
+            acc = acc + float(it["weight"]) * _swatch_content(key)
         return v1._normalise(acc)
+
+
+@functools.lru_cache(maxsize=1024)
+def _swatch_content(key: str) -> np.ndarray:
+    """Content of a swatch (its description as canonical JSON), shared by every
+    encoder of the process, as in version 1."""
+    out = content(render_swatch(json.loads(key))[None])[0]
+    out.flags.writeable = False
+    return out
