@@ -118,6 +118,18 @@ CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
     # the headroom of issue 41: the photos' own features in the original slot,
     # clean features in the novel slots (`import_features`)
     "ideal-novel": ("male", {}),
+    # Table 4: which targets the novel slots get (issue 41): the same appearance in
+    # every novel slot, and the selection without its quality constraint, without
+    # its diversity constraint, without both; and ε_q on a normalised error
+    "same-appearance": ("male", {"render-appearances": ["targets=same"]}),
+    **{
+        f"select-{sel}": ("male", {"render-appearances": [f"selection={sel}"]})
+        for sel in ("quality", "diversity", "random")
+    },
+    **{
+        f"quality-{m}": ("male", {"render-appearances": [f"quality_metric={m}"]})
+        for m in ("l1-relative", "dssim")
+    },
     # the defaults before issue 40 (one graph pass per level, fixed 20/7 px filters)
     "male-old": (
         "male",
@@ -141,7 +153,22 @@ UPSTREAM_LABELS = (
     "langsplat-truth",
     "no-multi-appearance-truth",
 )
-OPTIONAL_LABELS = ("no-uncertainty-ae", "lift-codes", "ideal-novel", *UPSTREAM_LABELS)
+# issue 41's target selection (Table 4 and the normalised ε_q): `make bench-targets`
+TARGET_LABELS = (
+    "same-appearance",
+    "select-quality",
+    "select-diversity",
+    "select-random",
+    "quality-l1-relative",
+    "quality-dssim",
+)
+OPTIONAL_LABELS = (
+    "no-uncertainty-ae",
+    "lift-codes",
+    "ideal-novel",
+    *UPSTREAM_LABELS,
+    *TARGET_LABELS,
+)
 CHAIN_LABELS.update({v: (v, {}) for v in ("no-uncertainty-ae", "lift-codes")})
 FEATURE_LABELS = ("2d", "2d-ae", "2d-nosmooth", "2d-best", "2d-truth", "2d-old")
 OLD_SEGMENTS = ["images=orig", "segmenter=graph"]  # extract-features, for 2d-old
@@ -173,13 +200,48 @@ ANSWERED = 0.1  # a cluster some method answers has a mean IoU of at least this
 # ------------------------------------------------------------------ one seed --
 
 
-def _scene(data: Path, preset: str, seed: int) -> Path:
+def _scene(data: Path, preset: str, seed: int, standin: int = 1) -> Path:
+    """The seed's scene in the world of stand-in `standin`, generated if missing;
+    a scene made for another stand-in is an error (another --data folder)."""
+    from ptovs.encoders import standin_version
+
     scene = data / f"{preset}_s{seed}"
     if not (scene / "synthetic" / "truth" / "cameras.json").is_file():
         from ptovs.synthetic import generate_scene
 
-        generate_scene(data, preset, seed, progress=False)
+        generate_scene(data, preset, seed, progress=False, standin=standin)
+    vocab = json.loads((scene / "synthetic" / "vocabulary.json").read_text())
+    if standin_version(vocab) != standin:
+        raise SystemExit(
+            f"{scene} was generated for stand-in {standin_version(vocab)}, not "
+            f"{standin}: give another --data folder (e.g. data/accuracy-v{standin})"
+        )
     return scene
+
+
+def chosen_targets(ctx, ref, variant: str, sets: dict, cams: dict) -> list | None:
+    """The novel targets the chain's render-appearances chose, each with its
+    truth appearance (sky, film filter, exposure): None where the chain has no
+    novel slots."""
+    from ptovs.artifacts import read_json_dataset
+    from ptovs.stage import Chain
+    from ptovs.variants import variant_sets
+
+    chain = Chain(ctx, ref, variant_sets(variant, sets))
+    if "render-appearances" not in chain.closure("evaluate"):
+        return None
+    art = chain.inputs_of("render-appearances")
+    try:
+        slots = read_json_dataset(art.root()["slots_json"])
+    finally:
+        art.close()
+    truth = {r["name"]: r.get("appearance", {}) for r in cams["images"]}
+    out = []
+    for t in slots["targets"]:
+        a = truth.get(f"{t}.jpg", truth.get(t, {})) if t is not None else {}
+        out.append({"id": t, "sky": a.get("sky"), "filter": a.get("filter"),
+                    "exposure": a.get("exposure")})  # fmt: skip
+    return out
 
 
 def _run_s(art) -> float:
@@ -447,7 +509,7 @@ def run_seed(args: argparse.Namespace, seed: int) -> None:
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     torch.set_num_threads(max(1, args.threads))
-    scene = _scene(args.data, args.preset, seed)
+    scene = _scene(args.data, args.preset, seed, args.standin)
     path = _result_path(args.work, scene.name)
     res = _load_result(path, _digest(args))
     cams = json.loads((scene / "synthetic" / "truth" / "cameras.json").read_text())
@@ -488,6 +550,9 @@ def run_seed(args: argparse.Namespace, seed: int) -> None:
             pairs, secs = _chain_pairs(ctx, ref, variant, sets)
             wall = time.perf_counter() - t0
             res["labels"][label] = _entry(pairs, secs, wall, keys[label])
+            targets = chosen_targets(ctx, ref, variant, sets, cams)
+            if targets is not None:  # issue 41: what the selection picked
+                res["labels"][label]["targets"] = targets
         write_atomic(path, json.dumps(res))
         print(f"{scene.name} {label}: {time.perf_counter() - t0:.1f} s", flush=True)
 
@@ -570,7 +635,7 @@ def run_all(args: argparse.Namespace) -> None:
 
 def _forward(args: argparse.Namespace) -> list[str]:
     out = ["--preset", args.preset, "--data", str(args.data), "--work", str(args.work)]
-    out += ["--labels", *args.labels]
+    out += ["--labels", *args.labels, "--standin", str(args.standin)]
     if args.config:
         out += ["--config", str(args.config)]
     return out
@@ -969,6 +1034,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--labels", nargs="+", default=list(LABELS), choices=ALL_LABELS)
     ap.add_argument("--config", type=Path, default=ROOT / "configs" / "accuracy.toml")
     ap.add_argument("--data", type=Path, default=ROOT / "data" / "accuracy")
+    ap.add_argument("--standin", type=int, default=1, choices=(1, 2),
+                    help="the stand-in for CLIP the scenes are made for (issue 41: "
+                         "2 with its own --data and --work)")  # fmt: skip
     ap.add_argument("--work", type=Path, default=ROOT / "work" / "accuracy")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--threads", type=int, default=1, help=argparse.SUPPRESS)

@@ -12,7 +12,13 @@ from conftest import RECON, copy_work
 from ptovs.artifacts import Artifact, read_json_dataset
 from ptovs.cli import main
 from ptovs.features import SegmentFeatures, read_langsplat, view_apps, write_langsplat
-from ptovs.field.appearance import pairwise_l1, paper_targets, select_targets
+from ptovs.field.appearance import (
+    QUALITY_METRICS,
+    pairwise_l1,
+    paper_targets,
+    render_error,
+    select_targets,
+)
 from ptovs.field.losses import auroc
 from ptovs.scene import load_scene
 from ptovs.segment import NO_SEGMENT, Level
@@ -76,6 +82,58 @@ def test_selection_too_few_candidates_is_reported():
         names, np.arange(6.0), np.ones((6, 4)), 3, quality_quantile=1.0
     )
     assert len(chosen) == 1 and "note" in rep
+
+
+def test_selection_without_its_constraints():
+    """Table 4's rows: no ε_q (any image is a candidate), no ε_d (a seeded draw)."""
+    rng = np.random.default_rng(2)
+    names = [f"img{i}" for i in range(30)]
+    q, emb = rng.random(30), rng.normal(size=(30, 8))
+    chosen, rep = select_targets(names, q, emb, 3, seed=1, use_diversity=False)
+    assert len(set(chosen)) == 3 and rep["eps_d"] is None and not rep["diversity"]
+    assert all(q[names.index(c)] < rep["eps_q"] for c in chosen)
+    assert select_targets(names, q, emb, 3, seed=1, use_diversity=False)[0] == chosen
+    chosen, rep = select_targets(names, q, emb, 3, seed=1, use_quality=False)
+    assert rep["eps_q"] is None and rep["candidates"] == 30 and len(chosen) == 3
+    chosen, rep = select_targets(
+        names[:2], q[:2], emb[:2], 3, use_quality=False, use_diversity=False
+    )
+    assert len(chosen) == 2 and "only 2 of 3" in rep["note"]
+
+
+def test_render_error_metrics():
+    """ε_q's errors against a float64 reference, and the bias "l1" has: a darker
+    pair has a smaller L1 for the same relative error; the normalised ones do not."""
+    rng = np.random.default_rng(0)
+    photo = rng.uniform(0.2, 0.8, (24, 20, 3))
+    render = np.clip(photo + rng.normal(0, 0.05, photo.shape), 0, 1)
+    l1 = float(np.abs(render - photo).mean())
+    assert render_error(render, photo, "l1") == pytest.approx(l1, rel=1e-12)
+    assert render_error(render, photo, "l1-relative") == pytest.approx(
+        l1 / photo.mean(), rel=1e-12
+    )
+    dark = 0.25
+    assert render_error(dark * render, dark * photo, "l1") == pytest.approx(dark * l1)
+    assert render_error(dark * render, dark * photo, "l1-relative") == pytest.approx(
+        l1 / photo.mean()
+    )
+    d = render_error(render, photo, "dssim")
+    assert 0.0 < d < 1.0
+    # contrast halved about mid grey: SSIM's structure term keeps most of it
+    flat = lambda x: 0.5 + 0.5 * (x - 0.5)  # noqa: E731
+    assert render_error(flat(render), flat(photo), "dssim") < 2 * d
+    # hard cases: identical constant images, black ones, no NaN
+    for v in (0.0, 0.5, 1.0):
+        c = np.full((8, 8, 3), v)
+        for m in QUALITY_METRICS:
+            assert render_error(c, c, m) == pytest.approx(0.0, abs=1e-12)
+    assert np.isfinite(
+        render_error(np.ones((8, 8, 3)), np.zeros((8, 8, 3)), "l1-relative")
+    )
+    with pytest.raises(ValueError, match="quality metric"):
+        render_error(render, photo, "psnr")
+    with pytest.raises(ValueError, match="shape"):
+        render_error(render, photo[:-1], "l1")
 
 
 def test_paper_targets_by_scene_name():

@@ -8,6 +8,12 @@ every train image's self-render, ε_d starts at the median pairwise L1 distance 
 the candidates' embeddings and is lowered by deciles (logged) until N−1 targets
 exist; with fewer than N−1 candidates, all candidates are used and the report says
 so. The authors' hard-coded ids for the seven PT-OVS scenes are `PAPER_TARGETS`.
+
+Which error ε_q thresholds is `QUALITY_METRICS`: the paper's words give an absolute
+L1 error, and an absolute error is smallest on dark and colourless photos (little
+signal, little error), so those qualify first whatever their render's fidelity.
+"l1-relative" divides by the photo's mean intensity; "dssim" (1 − SSIM of the
+luminance) ignores brightness and contrast both.
 """
 
 from __future__ import annotations
@@ -34,6 +40,55 @@ PAPER_TARGETS = {
     "todaiji": ("08855480_12135166146", "10449189_312833816", "36907783_8321442187"),
 }
 DIVERSITY_DECILES = (0.5, 0.4, 0.3, 0.2, 0.1, 0.0)
+QUALITY_METRICS = ("l1", "l1-relative", "dssim")
+_SSIM_C1, _SSIM_C2 = 0.01**2, 0.03**2  # Wang et al. 2004, for values in [0, 1]
+
+
+def _luma(img: np.ndarray) -> np.ndarray:
+    x = np.asarray(img, np.float64)
+    return x @ np.array([0.299, 0.587, 0.114]) if x.ndim == 3 else x
+
+
+def ssim(a: np.ndarray, b: np.ndarray, sigma: float = 1.5) -> float:
+    """Mean SSIM of two images' luminance ([H, W, 3] or [H, W], values in [0, 1]),
+    Gaussian window of `sigma` px, float64. 1 for identical images, constant
+    ones included."""
+    import cv2
+
+    x, y = _luma(a), _luma(b)
+    if x.shape != y.shape:
+        raise ValueError(f"ssim: shapes differ, {x.shape} and {y.shape}")
+    if x.size == 0:
+        raise ValueError("ssim: empty image")
+
+    def blur(v: np.ndarray) -> np.ndarray:
+        return cv2.GaussianBlur(v, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+
+    mx, my = blur(x), blur(y)
+    vx = np.maximum(blur(x * x) - mx * mx, 0.0)
+    vy = np.maximum(blur(y * y) - my * my, 0.0)
+    cxy = blur(x * y) - mx * my
+    s = ((2 * mx * my + _SSIM_C1) * (2 * cxy + _SSIM_C2)) / (
+        (mx * mx + my * my + _SSIM_C1) * (vx + vy + _SSIM_C2)
+    )
+    return float(s.mean())
+
+
+def render_error(render: np.ndarray, photo: np.ndarray, metric: str = "l1") -> float:
+    """How far a self-render is from its photo (lower is better), by `metric`
+    (`QUALITY_METRICS`): "l1" the mean absolute error (the paper's ε_q),
+    "l1-relative" that over the photo's mean intensity, "dssim" 1 − SSIM."""
+    r = np.asarray(render, np.float64)
+    p = np.asarray(photo, np.float64)
+    if r.shape != p.shape:
+        raise ValueError(f"render and photo differ in shape: {r.shape}, {p.shape}")
+    if metric == "l1":
+        return float(np.abs(r - p).mean())
+    if metric == "l1-relative":
+        return float(np.abs(r - p).mean() / max(float(p.mean()), 1.0 / 255.0))
+    if metric == "dssim":
+        return 1.0 - ssim(r, p)
+    raise ValueError(f"quality metric {metric!r}: expected one of {QUALITY_METRICS}")
 
 
 def paper_targets(scene_name: str) -> tuple[str, ...] | None:
@@ -77,6 +132,8 @@ def select_targets(
     quality_quantile: float = 0.25,
     seed: int = 0,
     tries: int = 200,
+    use_quality: bool = True,
+    use_diversity: bool = True,
 ) -> tuple[list[str], dict]:
     """Pick up to k target images by render quality and embedding diversity.
 
@@ -88,6 +145,9 @@ def select_targets(
         quality_quantile: ε_q = this quantile of q.
         seed: seeds the rejection sampling.
         tries: random orders tried per ε_d level.
+        use_quality: False drops ε_q: every image is a candidate (Table 4).
+        use_diversity: False drops ε_d: a seeded random draw among the
+            candidates (Table 4).
 
     Returns:
         The chosen names (≤ k) and a report: ε_q, candidates, the ε_d levels
@@ -98,20 +158,28 @@ def select_targets(
         raise ValueError("names, quality and embeddings must align")
     if k < 0:
         raise ValueError(f"k must be >= 0, got {k}")
-    report: dict = {"k_requested": k, "quality_quantile": quality_quantile}
+    report: dict = {
+        "k_requested": k,
+        "quality_quantile": quality_quantile if use_quality else None,
+        "diversity": use_diversity,
+    }
     if k == 0 or len(q) == 0:
         report.update(chosen=[], eps_q=None, candidates=0, note="nothing to choose")
         return [], report
-    eps_q = float(np.quantile(q, quality_quantile))
-    cand = np.flatnonzero(q < eps_q)
-    if cand.size == 0:  # ties (e.g. every render equally good): take the ties
-        cand = np.flatnonzero(q <= eps_q)
+    if use_quality:
+        eps_q = float(np.quantile(q, quality_quantile))
+        cand = np.flatnonzero(q < eps_q)
+        if cand.size == 0:  # ties (e.g. every render equally good): take the ties
+            cand = np.flatnonzero(q <= eps_q)
+    else:
+        eps_q, cand = None, np.arange(len(q))
     dist = pairwise_l1(np.asarray(embeddings)[cand])
     off = dist[~np.eye(len(cand), dtype=bool)]
-    levels = (
-        [float(np.quantile(off, d)) for d in DIVERSITY_DECILES] if off.size else [0.0]
-    )
-    levels.append(0.0)  # last resort: any two distinct embeddings
+    if use_diversity:
+        levels = [float(np.quantile(off, d)) for d in DIVERSITY_DECILES if off.size]
+        levels = (levels or [0.0]) + [0.0]  # last: any two distinct embeddings
+    else:
+        levels, tries = [-1.0], 1  # any candidates: one seeded random order
     rng = np.random.default_rng(seed)
     best: list[int] = []
     best_eps = levels[0]
@@ -134,7 +202,7 @@ def select_targets(
         eps_q=eps_q,
         candidates=int(cand.size),
         eps_d_tried=tried,
-        eps_d=best_eps,
+        eps_d=best_eps if use_diversity else None,
         chosen=chosen,
         quality={n: float(q[cand[i]]) for n, i in zip(chosen, best, strict=True)},
         min_pairwise_l1=min_d,
@@ -142,8 +210,9 @@ def select_targets(
     if len(chosen) < k:
         report["note"] = (
             f"only {len(chosen)} of {k} novel appearances pass the quality "
-            f"constraint ({cand.size} candidates below ε_q = {eps_q:.4g}); "
-            "using what passes"
+            f"constraint ({cand.size} candidates"
+            + (f" below ε_q = {eps_q:.4g}" if eps_q is not None else "")
+            + "); using what passes"
         )
         log.warning("%s", report["note"])
     return chosen, report

@@ -17,19 +17,26 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
 
 from ptovs.artifacts import Artifact, Checkpoint, json_dataset
-from ptovs.field.appearance import min_pairwise_l1, paper_targets, select_targets
+from ptovs.field.appearance import (
+    QUALITY_METRICS,
+    min_pairwise_l1,
+    paper_targets,
+    render_error,
+    select_targets,
+)
 from ptovs.field.render import WildField
 from ptovs.raster import VERSION as RASTER_VERSION
 from ptovs.raster import Camera
 from ptovs.stage import scene_input, stage_command, upstream
 
 log = logging.getLogger(__name__)
+SELECTIONS = ("quality+diversity", "quality", "diversity", "random")
 
 NAME = "render-appearances"
 VERSION = 1 + 100 * RASTER_VERSION
@@ -44,7 +51,18 @@ class Config:
     "select", "same" (every novel slot uses the view's own embedding: Table 4's
     ablation), or a list of N−1 train image ids."""
     quality_quantile: float = 0.25
-    """ε_q = this quantile of the self-render L1 over the train images."""
+    """ε_q = this quantile of the self-render error over the train images."""
+    quality_metric: Literal["l1", "l1-relative", "dssim"] = "l1"
+    """The self-render error ε_q thresholds: "l1" (the paper's words: mean absolute
+    error; dark and colourless photos have the smallest), "l1-relative" (over the
+    photo's mean intensity) or "dssim" (1 − SSIM of the luminance: blind to
+    brightness and contrast)."""
+    selection: Literal["quality+diversity", "quality", "diversity", "random"] = (
+        "quality+diversity"
+    )
+    """Which of the paper's two constraints "select" applies (Table 4):
+    "quality+diversity" (both), "quality" (no ε_d: a seeded random draw among the
+    good renders), "diversity" (no ε_q), "random" (neither)."""
     seed: int = 0
     """Seeds the diversity sampling (Table 4 re-draws targets with 5 seeds)."""
     bgr_swap_renders: bool = False
@@ -97,7 +115,9 @@ def _resolve_ids(targets: Any, scene, k: int) -> list[str] | None:
     return [train[i].name for i in ids]
 
 
-def _quality(field: WildField, scene, views, backend: str) -> np.ndarray:
+def _quality(
+    field: WildField, scene, views, backend: str, metric: str = "l1"
+) -> np.ndarray:
     from tqdm import tqdm
 
     q = np.zeros(len(views))
@@ -107,7 +127,7 @@ def _quality(field: WildField, scene, views, backend: str) -> np.ndarray:
         rgb = field.render(
             Camera.from_view(v), field.embeddings_of([v.name]), backend=backend
         )[0]
-        q[i] = float((rgb - torch.from_numpy(scene.load_image(v))).abs().mean())
+        q[i] = render_error(rgb.numpy(), scene.load_image(v), metric)
     return q
 
 
@@ -117,6 +137,16 @@ def run(
     """Choose the targets, then yield each train view's renders."""
     if config.n_appearances < 1:
         raise ValueError(f"n_appearances must be >= 1, got {config.n_appearances}")
+    if config.quality_metric not in QUALITY_METRICS:
+        raise ValueError(
+            f"render-appearances.quality_metric = {config.quality_metric!r}: "
+            f"expected one of {', '.join(QUALITY_METRICS)}"
+        )
+    if config.selection not in SELECTIONS:
+        raise ValueError(
+            f"render-appearances.selection = {config.selection!r}: expected one of "
+            f"{', '.join(SELECTIONS)}"
+        )
     scene = inputs.scene
     field = WildField.from_artifact(inputs.field)
     views = scene.train_views()
@@ -141,7 +171,7 @@ def run(
         else:
             ids = _resolve_ids(config.targets, scene, k)
             if ids is None:
-                q = _quality(field, scene, views, config.backend)
+                q = _quality(field, scene, views, config.backend, config.quality_metric)
                 emb = field.embeddings_of([v.name for v in views]).numpy()
                 ids, sel = select_targets(
                     [v.name for v in views],
@@ -150,9 +180,12 @@ def run(
                     k,
                     config.quality_quantile,
                     config.seed,
+                    use_quality="quality" in config.selection.split("+"),
+                    use_diversity="diversity" in config.selection.split("+"),
                 )
                 report.update(sel)
                 report["mode"] = "select"
+                report["quality_metric"] = config.quality_metric
             else:
                 report["mode"] = "list"
                 report["chosen"] = ids
