@@ -219,10 +219,11 @@ def _scene(data: Path, preset: str, seed: int, standin: int = 1) -> Path:
     return scene
 
 
-def chosen_targets(ctx, ref, variant: str, sets: dict, cams: dict) -> list | None:
+def chosen_targets(ctx, ref, variant: str, sets: dict, cams: dict) -> dict | None:
     """The novel targets the chain's render-appearances chose, each with its
-    truth appearance (sky, film filter, exposure): None where the chain has no
-    novel slots."""
+    truth appearance (sky, film filter, exposure), and the fidelity of the field
+    they were rendered from (reconstruct's own PSNR, train and test photos): None
+    where the chain renders no appearances."""
     from ptovs.artifacts import read_json_dataset
     from ptovs.stage import Chain
     from ptovs.variants import variant_sets
@@ -235,13 +236,20 @@ def chosen_targets(ctx, ref, variant: str, sets: dict, cams: dict) -> list | Non
         slots = read_json_dataset(art.root()["slots_json"])
     finally:
         art.close()
+    art = chain.inputs_of("reconstruct")  # the renders' fidelity (issue 41 item 4)
+    try:
+        root = art.root()
+        fit = read_json_dataset(root["metrics_json"]) if "metrics_json" in root else {}
+    finally:
+        art.close()
     truth = {r["name"]: r.get("appearance", {}) for r in cams["images"]}
     out = []
     for t in slots["targets"]:
         a = truth.get(f"{t}.jpg", truth.get(t, {})) if t is not None else {}
         out.append({"id": t, "sky": a.get("sky"), "filter": a.get("filter"),
                     "exposure": a.get("exposure")})  # fmt: skip
-    return out
+    return {"targets": out, "psnr_train": fit.get("psnr_train"),
+            "psnr_test": fit.get("psnr_test")}  # fmt: skip
 
 
 def _run_s(art) -> float:
@@ -550,9 +558,9 @@ def run_seed(args: argparse.Namespace, seed: int) -> None:
             pairs, secs = _chain_pairs(ctx, ref, variant, sets)
             wall = time.perf_counter() - t0
             res["labels"][label] = _entry(pairs, secs, wall, keys[label])
-            targets = chosen_targets(ctx, ref, variant, sets, cams)
-            if targets is not None:  # issue 41: what the selection picked
-                res["labels"][label]["targets"] = targets
+            renders = chosen_targets(ctx, ref, variant, sets, cams)
+            if renders is not None:  # issue 41: what the selection picked
+                res["labels"][label]["renders"] = renders
         write_atomic(path, json.dumps(res))
         print(f"{scene.name} {label}: {time.perf_counter() - t0:.1f} s", flush=True)
 
@@ -768,6 +776,7 @@ def report(args: argparse.Namespace) -> str:
         ]
         md += _ceiling_lines(summ)
         md += _resolution_lines(sub)
+    md += _render_lines(results, labels)
     md += ["", "### Where mIoU is lost (all seeds)", ""]
     md += chain_loss(results)
     md += ["", "### Time", ""]
@@ -781,6 +790,40 @@ def report(args: argparse.Namespace) -> str:
     if "test" in summaries and args.plot:
         _plot(summaries["test"], args.plot)
     return out
+
+
+def _render_lines(results: dict[int, dict], labels: list[str]) -> list[str]:
+    """What each label's novel slots were rendered from (issue 41): the field's
+    test PSNR and the truth appearance of the chosen targets, over all seeds."""
+    from collections import Counter
+
+    rows = []
+    for lab in labels:
+        got = [r["labels"][lab]["renders"] for r in results.values()
+               if "renders" in r.get("labels", {}).get(lab, {})]  # fmt: skip
+        if not got:
+            continue
+        psnr = [g["psnr_test"] for g in got if g.get("psnr_test") is not None]
+        kinds = Counter(
+            t["sky"] + ("" if t["filter"] in (None, "none") else f"+{t['filter']}")
+            for g in got for t in g["targets"] if t.get("id") and t.get("sky")
+        )  # fmt: skip
+        same = sum(1 for g in got for t in g["targets"] if not t.get("id"))
+        if same:
+            kinds["(the view's own)"] = same
+        mix = ", ".join(f"{k} {n}" for k, n in kinds.most_common())
+        fit = f"{np.mean(psnr):.1f} dB" if psnr else "-"
+        rows.append(f"| `{lab}` | {len(got)} | {fit} | {mix} |")
+    if not rows:
+        return []
+    return [
+        "",
+        "### The novel slots' renders (all seeds)",
+        "",
+        "| label | seeds | field's test PSNR | chosen targets' truth appearance |",
+        "|---|---|---|---|",
+        *rows,
+    ]
 
 
 def _rel(path: Path | None) -> str:

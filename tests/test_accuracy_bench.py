@@ -164,3 +164,32 @@ def test_import_labels_say_whose_features_each_slot_gets() -> None:
     # both read an import folder of their own; the default run measures neither new
     assert "ideal-novel" in acc.ALL_LABELS and "ideal-novel" not in acc.LABELS
     assert "oracle" in acc.LABELS
+
+
+def test_target_labels_and_the_renders_they_log(tmp_path: Path) -> None:
+    """Issue 41: Table 4's labels are on request; the report says what the novel
+    slots were rendered from; a scene of another stand-in's world is refused."""
+    acc = _bench()
+    for lab in ("same-appearance", "select-random", "quality-dssim"):
+        assert lab in acc.ALL_LABELS and lab not in acc.LABELS
+    assert acc.CHAIN_LABELS["quality-dssim"][1] == {
+        "render-appearances": ["quality_metric=dssim"]
+    }
+
+    def seed(s: int, targets: list[dict]) -> dict:
+        renders = {"targets": targets, "psnr_train": 18.0, "psnr_test": 17.0 + s}
+        return {"labels": {"male": {"pairs": [], "renders": renders}}}
+
+    night = {"id": "a", "sky": "night", "filter": "none"}
+    sepia = {"id": "b", "sky": "day", "filter": "sepia"}
+    lines = acc._render_lines({0: seed(0, [night, sepia]), 1: seed(1, [night])},
+                              ["male", "langsplat"])  # fmt: skip
+    row = next(line for line in lines if line.startswith("| `male`"))
+    assert "| 2 | 17.5 dB | night 2, day+sepia 1 |" in row
+    assert not any("langsplat" in line for line in lines)
+    from ptovs.synthetic import generate_scene
+
+    generate_scene(tmp_path, "tiny", 0, progress=False)
+    assert acc._scene(tmp_path, "tiny", 0, 1).name == "tiny_s0"
+    with pytest.raises(SystemExit, match="generated for stand-in 1, not 2"):
+        acc._scene(tmp_path, "tiny", 0, 2)
