@@ -4,6 +4,8 @@
 #   make test          the test suite (what CI runs)
 #   make bench-accuracy  the accuracy instrument: 18 seeds, every variant, CIs (~2 h)
 #   make bench-upstream  issue 40's one-off comparisons (segmenters; old and truth front ends)
+#   make bench-standin   the stand-in's failure profile against CLIP's (calibration seeds)
+#   make bench-multiapp  the paper's multi-appearance claim in stand-in 2's world (fresh seeds)
 #   make -j3 all       every scene under DATA in parallel, stages in order, then the
 #                      per-scene table (a failing scene is marked, the others go on)
 #   make cluster       the same through Snakemake: PROFILE=local (default) or slurm
@@ -53,7 +55,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # Gaussians, 2.5 %, at relevancy score 0.477 on 2026-11-26's machine)
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo view test test-slurm lint format bench bench-accuracy bench-upstream bench-standin all cluster scenes table status clean-work $(SCENES)
+.PHONY: setup demo view test test-slurm lint format bench bench-accuracy bench-upstream bench-standin bench-multiapp all cluster scenes table status clean-work $(SCENES)
 
 setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml
@@ -143,7 +145,16 @@ bench-accuracy: setup
 # the stand-in encoder's failure profile against CLIP's (issue 41): calibration
 # seeds only, crops only, no method measured
 bench-standin: setup
-	$(BIN)/python bench/standin_profile.py --seeds 300-305 --out $(QWORK)/standin/profile.json
+	$(BIN)/python bench/standin_profile.py --seeds 300-305 --jobs 2 --out $(QWORK)/standin/profile.json
+
+# the paper's multi-appearance claim (Table 3 row 1) judged in the world of stand-in 2
+# (issue 41), on fresh seeds in their own folders: dev 100-108, test 109-117.
+# MULTIAPP_LABELS adds Table 4's rows and the normalised ε_q (same-appearance
+# select-quality select-diversity select-random quality-l1-relative quality-dssim)
+MULTIAPP_LABELS ?= male no-multi-appearance langsplat 2d ideal-novel
+bench-multiapp: setup
+	$(BIN)/python bench/accuracy.py --preset small --standin 2 --seeds 100-117 --dev 100-108 \
+	  --data $(QDATA)/accuracy-v2 --work $(QWORK)/accuracy-v2 --labels $(MULTIAPP_LABELS)
 
 # the one-off comparisons of issue 40, on the instrument's scenes and cache: the
 # segmenter sweep on dev and the three segmenters on test; the old front end and

@@ -38,8 +38,10 @@ two daylight renders of the same crop are (error lift: P(wrong in B | wrong in A
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
+import multiprocessing
 import sys
 import time
 from dataclasses import replace
@@ -269,6 +271,12 @@ def summarise(results: list[dict]) -> dict:
     return out
 
 
+def _one_seed(n_cams: int, scale: int, version: int, t0: float, seed: int) -> dict:
+    out = score(collect(seed, n_cams, scale, version), version)
+    print(f"seed {seed}: {time.perf_counter() - t0:.0f} s", flush=True)
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", nargs="+", default=["300-303"])
@@ -278,13 +286,17 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument(
         "--out", type=Path, default=ROOT / "work" / "standin" / "profile.json"
     )
+    ap.add_argument("--jobs", type=int, default=1, help="seeds measured at once")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    results = []
-    for s in seed_list(args.seeds):
-        col = collect(s, args.cams, args.scale, args.version)
-        results.append(score(col, args.version))
-        print(f"seed {s}: {time.perf_counter() - t0:.0f} s", flush=True)
+    seeds = seed_list(args.seeds)
+    job = functools.partial(_one_seed, args.cams, args.scale, args.version, t0)
+    if args.jobs > 1:
+        ctx = multiprocessing.get_context("spawn")
+        with ctx.Pool(args.jobs) as pool:
+            results = pool.map(job, seeds, chunksize=1)
+    else:
+        results = [job(s) for s in seeds]
     summary = summarise(results)
     summary["version"] = args.version
     summary["seconds"] = round(time.perf_counter() - t0, 1)

@@ -113,6 +113,37 @@ def test_blur_deficit_grows_with_blur(world_crops) -> None:
     assert d6.mean() >= d3.mean() - 0.5
 
 
+def test_chroma_decoupling_sees_jpeg_and_noise(world_crops) -> None:
+    """Chroma edges that leave the luminance edges (JPEG blocks, sensor noise)
+    raise a crop's distortion; a colourless crop has none to decouple."""
+    crops = [c for c in world_crops[2] if (c.max(axis=2) > 0).mean() > 0.2][:6]
+    rng = np.random.default_rng(0)
+
+    def measure(fn) -> np.ndarray:
+        out = []
+        for c in crops:
+            inside = c.max(axis=2) > 0
+            b = np.clip(fn(c), 1 / 255, 1).astype(np.float32)
+            b[~inside] = 0
+            out.append(b)
+        return v2.chroma_decoupling(v2.raw_features(np.stack(out)))
+
+    def jpeg(c: np.ndarray) -> np.ndarray:
+        u8 = np.round(c * 255).astype(np.uint8)[..., ::-1]
+        ok, buf = cv2.imencode(".jpg", u8, [cv2.IMWRITE_JPEG_QUALITY, 7])
+        assert ok
+        return cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1] / 255.0
+
+    clean = measure(lambda c: c)
+    noisy = measure(lambda c: c + rng.uniform(-0.2, 0.2, c.shape))
+    blocky = measure(jpeg)
+    grey = measure(lambda c: np.repeat(c.mean(axis=2, keepdims=True), 3, axis=2))
+    assert (clean >= 0).all() and np.isfinite(clean).all()
+    assert noisy.mean() > clean.mean() + 1.0
+    assert blocky.mean() > clean.mean() + 1.0
+    assert np.allclose(grey, 0.0)
+
+
 def test_colour_is_a_weak_cue(world_crops, enc) -> None:
     """Greyscale moves a crop's embedding less than a strong blur does (CLIP's
     order), and the keyed perturbation differs between two lights of one crop."""

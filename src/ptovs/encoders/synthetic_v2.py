@@ -17,7 +17,8 @@ standardised against a fixed bank of random swatches, clipped to +-3 and weighte
   the mask's own edge does not count), an orientation histogram of the gradient,
   its mean magnitude, and the histogram of the normalised values (two-tone stripes
   against noise): what blur, low resolution, noise and JPEG take away;
-- coarse texture: Gabor energy shares at 10 and 20 px;
+- coarse texture: Gabor energy shares at 10 and 20 px (filtered at half
+  resolution, where the same kernels cost a quarter);
 - colour, a little: the hue of the mean opponent colour, the spread of colours
   about it, a saturation-weighted hue histogram, all blind to saturation (so to
   contrast); greyscale and a colour cast cost a little, not half;
@@ -26,9 +27,11 @@ standardised against a fixed bank of random swatches, clipped to +-3 and weighte
 - a fixed pseudo-random perturbation keyed by the crop's own coarse content (a hash
   of its 8 x 8 colour grid, quantised): the same pixels always get the same error,
   another light or another view gets another one, so appearances err differently.
-  Its size grows with the crop's blur deficit (`blur_deficit`: the detail the crop
-  lacks at the two finest scales compared with a sharp render), as CLIP's features
-  drift on blurred and upsampled crops.
+  Its size grows with the crop's distortion (`distortion`): its blur deficit
+  (`blur_deficit`: the detail the crop lacks at the two finest scales compared
+  with a sharp render), as CLIP's features drift on blurred and upsampled crops,
+  plus its chroma decoupling (`chroma_decoupling`: chroma edges where the
+  luminance has none, as strong JPEG and sensor noise make them).
 The statistics are projected to 512-d with a seeded Gaussian matrix and normalised;
 the modality offset is version 1's.
 
@@ -82,16 +85,19 @@ LN_BINS = np.linspace(-2.0, 2.0, 9)  # histogram of the normalised luminance
 PARAMS: dict[str, float] = {
     "w_colour": 0.7,  # hue and colour spread (blind to saturation and contrast)
     "w_lum": 0.0,  # mean and spread of luminance: off (lighting, not identity)
-    "w_silhouette": 0.4,
+    "w_silhouette": 0.8,
     "w_layout": 0.0,  # luminance on a 4 x 4 grid: off (it follows the light's side)
     "w_fine": 2.5,  # Gabor energies at 2.5 and 5 px, orientations, value histogram
     "w_coarse": 1.0,  # Gabor energies at 10 and 20 px
-    "floor": 0.005,  # contrast normalisation: (L - mean) / (sd + floor)
-    "noise": 0.2,  # the keyed perturbation's norm, relative to the features'
-    "t1": -1.2,  # blur_deficit's thresholds and gains
+    "floor": 0.001,  # contrast normalisation: (L - mean) / (sd + floor)
+    "noise": 0.25,  # the keyed perturbation's norm, relative to the features'
+    "t1": -1.3,  # blur_deficit's thresholds and gains
     "t2": -0.9,
-    "k1": 4.5,
-    "k2": 7.5,
+    "k1": 1.0,
+    "k2": 6.0,
+    "t3": 0.6,  # chroma_decoupling's threshold and gain
+    "k3": 20.0,
+    "c0": 0.01,  # the chroma gradient below which a crop counts as colourless
 }
 _GROUPS = (  # (name, size)
     ("colour", 2 + 2 + 6),
@@ -102,17 +108,26 @@ _GROUPS = (  # (name, size)
     ("coarse", (len(WAVELENGTHS) - N_FINE) * len(THETAS)),
 )
 N_FEATURES = sum(n for _, n in _GROUPS)
+N_AUX = 2  # raw_features' last columns, not projected: chroma-luma edge coupling
 
 
 def _area(x: np.ndarray, n: int) -> np.ndarray:
     return cv2.resize(x, (n, n), interpolation=cv2.INTER_AREA).astype(np.float64)
 
 
+def _level(i: int) -> int:
+    """Downsampling factor wavelength i is filtered at: the coarse group at half
+    resolution (the same kernel in half the pixels, a quarter of the cost)."""
+    return 1 if i < N_FINE else 2
+
+
 @functools.lru_cache(maxsize=1)
 def _gabors() -> list[list[tuple[np.ndarray, np.ndarray]]]:
-    """(even, odd) Gabor kernels per wavelength and orientation, zero-mean, unit L2."""
+    """(even, odd) Gabor kernels per wavelength and orientation, zero-mean, unit
+    L2, float32, at the resolution `_level` filters that wavelength at."""
     out = []
-    for lam in WAVELENGTHS:
+    for i, lam in enumerate(WAVELENGTHS):
+        lam = lam / _level(i)
         sigma = 0.56 * lam
         k = 2 * int(math.ceil(2.5 * sigma)) + 1
         row = []
@@ -121,7 +136,7 @@ def _gabors() -> list[list[tuple[np.ndarray, np.ndarray]]]:
             for psi in (0.0, math.pi / 2):
                 g = cv2.getGaborKernel((k, k), sigma, th, lam, 1.0, psi, cv2.CV_64F)
                 g = g - g.mean()
-                pair.append(g / np.sqrt((g * g).sum()))
+                pair.append((g / np.sqrt((g * g).sum())).astype(np.float32))
             row.append((pair[0], pair[1]))
         out.append(row)
     return out
@@ -189,17 +204,36 @@ def _one(crop: np.ndarray, floor: float) -> np.ndarray:
     Ln = (L - mu) / (sd + floor) * m
     out += list(_grid(Ln, m, 4))
     m8 = m.astype(np.uint8)
+    half = _R // 2
+    levels = {
+        1: (Ln.astype(np.float32), m, m8),
+        2: (
+            _area(Ln.astype(np.float32), half).astype(np.float32),
+            (_area(m.astype(np.float32), half) >= 0.5).astype(np.float64),
+            None,
+        ),
+    }
     energy = np.zeros((len(WAVELENGTHS), len(THETAS)))
     for i, lam in enumerate(WAVELENGTHS):
+        f = _level(i)
+        img, ml, ml8 = levels[f]
+        if ml8 is None:
+            ml8 = ml.astype(np.uint8)
         r = int(math.ceil(1.4 * lam)) if i < N_FINE else max(1, int(round(lam / 2)))
-        mi = cv2.erode(m8, np.ones((2 * r + 1, 2 * r + 1), np.uint8)).astype(np.float64)
+        r = max(1, int(round(r / f)))
+        mi = cv2.erode(ml8, np.ones((2 * r + 1, 2 * r + 1), np.uint8)).astype(
+            np.float64
+        )
         if mi.sum() < 4:
-            mi = m
+            mi = ml
         si = mi.sum() + 1e-9
         for j, (even, odd) in enumerate(_gabors()[i]):
-            re = cv2.filter2D(Ln, cv2.CV_64F, even, borderType=cv2.BORDER_REPLICATE)
-            im = cv2.filter2D(Ln, cv2.CV_64F, odd, borderType=cv2.BORDER_REPLICATE)
-            energy[i, j] = pool(re * re + im * im, mi, si)
+            re = cv2.filter2D(img, cv2.CV_32F, even, borderType=cv2.BORDER_REPLICATE)
+            im = cv2.filter2D(img, cv2.CV_32F, odd, borderType=cv2.BORDER_REPLICATE)
+            e = re.astype(np.float64) ** 2 + im.astype(np.float64) ** 2
+            # a unit-L2 kernel at 1/f resolution has 1/f^2 the taps: x f^2 keeps
+            # the energies of all wavelengths on one scale
+            energy[i, j] = pool(e, mi, si) * f * f
     total = energy.sum() + 1e-9
     share = energy / total
     coarse = list(share[N_FINE:].ravel())
@@ -220,6 +254,21 @@ def _one(crop: np.ndarray, floor: float) -> np.ndarray:
     for k in range(len(LN_BINS)):
         out.append(pool(v1._hat(zn, LN_BINS, k)))
     out += coarse  # the order of _GROUPS: ..., fine, coarse
+    # aux (not projected): how well chroma edges follow luminance edges, and how
+    # strong the chroma edges are
+    gLy, gLx = np.gradient(L)
+    g1y, g1x = np.gradient(o1)
+    g2y, g2x = np.gradient(o2)
+    inner = cv2.erode(m8, np.ones((5, 5), np.uint8)).astype(bool)
+    if inner.sum() < 8:
+        inner = m > 0
+    gl = np.sqrt(gLx * gLx + gLy * gLy)[inner]
+    gc = np.sqrt(g1x * g1x + g1y * g1y + g2x * g2x + g2y * g2y)[inner]
+    if gl.size >= 2 and gl.std() > 1e-9 and gc.std() > 1e-9:
+        corr = float(np.corrcoef(gl, gc)[0, 1])
+    else:
+        corr = 1.0  # no edges of one kind: nothing decoupled
+    out += [corr, float(gc.mean()) if gc.size else 0.0]
     return np.asarray(out, np.float64)
 
 
@@ -233,10 +282,10 @@ def _key(crop: np.ndarray) -> int:
 
 
 def raw_features(crops: np.ndarray, params: dict | None = None) -> np.ndarray:
-    """[B, N_FEATURES] float64 statistics of crops [B, S, S, 3] in [0, 1]."""
+    """[B, N_FEATURES + N_AUX] float64 statistics of crops [B, S, S, 3] in [0, 1]."""
     p = PARAMS if params is None else params
     out = np.stack([_one(c, p["floor"]) for c in crops])
-    assert out.shape[1] == N_FEATURES
+    assert out.shape[1] == N_FEATURES + N_AUX
     return out
 
 
@@ -284,6 +333,30 @@ def blur_deficit(raw: np.ndarray, params: dict | None = None) -> np.ndarray:
     )
 
 
+def chroma_decoupling(raw: np.ndarray, params: dict | None = None) -> np.ndarray:
+    """How far a crop's chroma edges have come loose from its luminance edges, >= 0.
+
+    In a photograph, colour changes where the surface changes, so chroma and
+    luminance edges coincide (their gradient magnitudes correlate at 0.9 on clean
+    renders). Block artefacts of strong JPEG (chroma subsampled and quantised in
+    8 x 8 blocks) and sensor noise put chroma edges where the surface has none
+    (correlation near 0.3). CLIP loses half its accuracy or more to such
+    corruption; here the crop's keyed perturbation grows with this measure.
+    Gated by the strength of the chroma edges (`c0`): a colourless or
+    low-contrast crop has no chroma edges to decouple.
+    """
+    p = PARAMS if params is None else params
+    corr, strength = raw[:, N_FEATURES], raw[:, N_FEATURES + 1]
+    gate = np.minimum(strength / p["c0"], 1.0)
+    return p["k3"] * gate * np.maximum(p["t3"] - corr, 0.0)
+
+
+def distortion(raw: np.ndarray, params: dict | None = None) -> np.ndarray:
+    """The size of a crop's keyed perturbation, relative to a clean crop's: blur
+    deficit plus chroma decoupling."""
+    return blur_deficit(raw, params) + chroma_decoupling(raw, params)
+
+
 def content(crops: np.ndarray, params: dict | None = None) -> np.ndarray:
     """Unit content vectors [B, 512] float64 of crops [B, S, S, 3]."""
     p = PARAMS if params is None else params
@@ -293,9 +366,9 @@ def content(crops: np.ndarray, params: dict | None = None) -> np.ndarray:
         [np.full(n, p[f"w_{name}"] / np.sqrt(n)) for name, n in _GROUPS]
     )
     raw = raw_features(crops, p)
-    z = np.clip((raw - mean) / scale, -ZCLIP, ZCLIP) * gw
+    z = np.clip((raw - mean) / scale, -ZCLIP, ZCLIP)[:, :N_FEATURES] * gw
     norm = float(np.sqrt((gw * gw).sum()))
-    amp = p["noise"] * (1.0 + blur_deficit(raw, p))
+    amp = p["noise"] * (1.0 + distortion(raw, p))
     for b, crop in enumerate(crops):
         e = np.random.default_rng(_key(crop)).standard_normal(N_FEATURES)
         z[b] += amp[b] * norm * e / np.sqrt(N_FEATURES)
