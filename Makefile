@@ -15,8 +15,10 @@ BIN    := $(VENV)/bin
 DATA   ?= data
 WORK   ?= work
 CONFIG ?= configs/default.toml
-# the real photo sets with cameras (bench/real.py's default; segment pictures)
-REAL   ?= $(ROOT)/../shared/data/real
+# the real photo sets with cameras (Strecha et al.'s herzjesu_p8 and fountain_p11,
+# each a folder of images/ and a COLMAP model; bench/real.py, segment pictures):
+# put them under data/real or pass REAL=DIR
+REAL   ?= $(ROOT)/data/real
 # $(call q,TEXT): TEXT as one single-quoted shell word, whatever it holds (paths in
 # recipes go through it: a space, quote or ; in DATA or WORK stays in its argument)
 q       = '$(subst ','\'',$(1))'

@@ -40,7 +40,7 @@ import h5py
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import OMP_SETTINGS, ROOT, Results  # noqa: E402  (same folder)
 
-REAL = ROOT.parent / "shared" / "data" / "real" / "fountain_p11"
+REAL = ROOT / "data" / "real" / "fountain_p11"  # see bench/real.py
 SETTINGS = {
     **{k: OMP_SETTINGS[k] for k in ("spin", "gomp", "passive", "spin3k")},
     "1thread": {"PTOVS_THREADS": "1"},

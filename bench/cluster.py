@@ -156,7 +156,7 @@ def stages_part(root: Path) -> dict:
     return {**res, "scene": scene.name, "stages": stages}
 
 
-# The seven PT-OVS scenes: train photos (PAPER_SPEC.md §1.1)
+# The seven PT-OVS scenes: train photos (docs/method.md §1.1)
 PT_OVS = {"brandenburg": 763, "trevi": 1689, "buckingham": 1379, "notre": 2934,
           "pantheon": 1308, "taj": 1238, "temple": 859}  # fmt: skip
 BENCH_VIEWS, BENCH_MP = 80, 320 * 240 / 1e6  # the `bench` preset's train photos

@@ -1,4 +1,4 @@
-"""Calibration of the stand-in encoder on `bench` scenes (SYNTHETIC.md).
+"""Calibration of the stand-in encoder on `bench` scenes (docs/standin.md).
 
 Closed set: each part crop (LangSplat recipe, truth part mask) is assigned the
 part whose query phrase has the highest text similarity. Open set (issue 20): the

@@ -1,6 +1,6 @@
 """Rasterizer benchmark: speed against error, per backend and for the fast path.
 
-The scene recipe is RASTERIZER.md §7 so the figures compare with its anchors:
+The scene recipe is docs/rasterizer.md §7 so the figures compare with its anchors:
 camera at the origin looking down +z, fx = fy = W, principal point at the centre;
 z ~ U[2, 6] with x, y inside the frustum; random quaternions; scales log-uniform in
 [0.01, 0.06]; opacity ~ U[0.1, 0.9]; features ~ U[0, 1]. Loss <render, v> +

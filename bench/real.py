@@ -1,4 +1,4 @@
-"""Real photos through `ptovs reconstruct` from images alone (shared/data/real).
+"""Real photos through `ptovs reconstruct` from images alone (the real photo sets: `--real DIR`, default data/real).
 
 python bench/real.py                                   # both sets, as they are (6 MP)
 python bench/real.py --sets fountain_p11 --megapixels 12   # resized to 12 MP first
@@ -40,7 +40,7 @@ from common import (  # noqa: E402  (same folder)
     run_ptovs,
 )
 
-REAL = ROOT.parent / "shared" / "data" / "real"
+REAL = ROOT / "data" / "real"  # herzjesu_p8/, fountain_p11/: images/ + COLMAP model
 
 
 def copy_photos(src: Path, dst: Path, megapixels: float) -> tuple[int, int]:
@@ -199,7 +199,12 @@ def run_sfm_only(args: argparse.Namespace, name: str, variant: str) -> dict:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--sets", nargs="+", default=["fountain_p11", "herzjesu_p8"])
-    p.add_argument("--real", type=Path, default=REAL, help="shared/data/real")
+    p.add_argument(
+        "--real",
+        type=Path,
+        default=REAL,
+        help="folder of real photo sets (default data/real)",
+    )
     p.add_argument("--megapixels", type=float, default=0.0, help="resize first (0: no)")
     p.add_argument("--iterations", type=int, default=0, help="0: the default")
     p.add_argument("--work", type=Path, default=ROOT / "work" / "real")

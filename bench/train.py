@@ -5,7 +5,7 @@ python bench/train.py --parts bench --seeds 0      # stages on bench (needs benc
 
 Parts:
   step   one train-male step (W·normalize(f), masked L1, Wᵀ·g, normalisation backward)
-         on the rasterizer benchmark scene (RASTERIZER.md §7: 1e5 Gaussians, 256²),
+         on the rasterizer benchmark scene (docs/rasterizer.md §7: 1e5 Gaussians, 256²),
          4 appearances × 3 levels (D = 36) and one level (D = 12), against the same
          step through `render()`; median of 20 after 3 warm-ups
   bench  per seed, through the CLI in the bench work dir: train-ae and train-male

@@ -58,7 +58,7 @@ def test_cpu_nets_shapes_and_ranges(concat):
 
 
 def test_authors_preset_layer_sizes():
-    """The authors' layers (PAPER_SPEC.md §2): f_α 4→128…512→32, f_γ 167→FC256, f_β 16…512."""
+    """The authors' layers (docs/method.md §2): f_α 4→128…512→32, f_γ 167→FC256, f_β 16…512."""
     nets = WildNets("authors", 36, mask_concat="input", background=False)
     convs = [m for m in nets.f_alpha.features if isinstance(m, torch.nn.Conv2d)]
     assert [tuple(c.weight.shape) for c in convs] == [

@@ -1,7 +1,7 @@
 """The pure-torch rasterizer (the oracle) and the public API of `ptovs.raster`.
 
 The reference is checked against a literal per-pixel float64 loop (`loop_composite`),
-torch.autograd.gradcheck, and the hard cases of RASTERIZER.md §6.
+torch.autograd.gradcheck, and the hard cases of docs/rasterizer.md §6.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ TOL = {F32: dict(rtol=1e-4, atol=1e-5), F64: dict(rtol=1e-10, atol=1e-12)}
 
 
 def make_camera(width: int, height: int, dtype=F32, f=None, cx=None, cy=None) -> Camera:
-    """Camera at the origin looking down +z (RASTERIZER.md §7)."""
+    """Camera at the origin looking down +z (docs/rasterizer.md §7)."""
     f = float(width) if f is None else f
     cx = width / 2 if cx is None else cx
     cy = height / 2 if cy is None else cy
@@ -73,7 +73,7 @@ def stack_at(points, dtype=F64, scale=0.01, opacity=0.5) -> Gaussians:
 
 
 def loop_composite(p: Projected, colors, background, width: int, height: int):
-    """The compositing rules of RASTERIZER.md §3, literally, one pixel at a time.
+    """The compositing rules of docs/rasterizer.md §3, literally, one pixel at a time.
 
     Every unculled Gaussian is visited in (float32 depth, id) order; no tiles. sigma
     and alpha are computed in the input dtype, T as a float64 running product.
@@ -222,7 +222,7 @@ def test_gradcheck_fov_clamp_path():
 
 
 def test_fov_clamp_sends_gradient_to_z_only():
-    """In the 2D covariance, a clamped axis depends on z only (RASTERIZER.md §1)."""
+    """In the 2D covariance a clamped axis depends on z only (docs/rasterizer.md §1)."""
     camera = make_camera(8, 6, F64, f=8.0)
     g = stack_at([[-3.0, 0.2, 3.0]], scale=0.5)
     means = g.means.clone().requires_grad_()
@@ -417,7 +417,7 @@ def test_projection_matches_direct_formula():
             np.testing.assert_array_equal(p.radii[i].numpy(), radii)
 
 
-# --- hard cases (RASTERIZER.md §6) -----------------------------------------------
+# --- hard cases (docs/rasterizer.md §6) -----------------------------------------------
 
 
 @pytest.mark.parametrize("dtype", [F64, F32])

@@ -55,7 +55,7 @@ def _assert_close(name, actual, expected, outliers=0, rel_l2=REL_L2, rel_elem=RE
 
 
 def _gaussians(n, width, height, seed, opacity=(0.1, 0.9)):
-    """RASTERIZER.md §7 scene: camera at the origin looking down +z, fx = fy = W."""
+    """Scene of docs/rasterizer.md §7: camera at the origin, down +z, fx = fy = W."""
     g = torch.Generator().manual_seed(seed)
     z = torch.rand(n, generator=g) * 4.0 + 2.0
     x = (torch.rand(n, generator=g) - 0.5) * z
@@ -165,7 +165,7 @@ def test_pixel_centre_convention():
 
 
 def _sequential(means2d, conics, opac, colors, isect, width, x, y):
-    """A literal float32 walk over one pixel's tile list (RASTERIZER.md §3)."""
+    """A literal float32 walk over one pixel's tile list (docs/rasterizer.md §3)."""
     f32 = torch.float32
     tile_id = (y // isect.tile) * isect.tw + x // isect.tile
     s, e = int(isect.tile_offsets[tile_id]), int(isect.tile_offsets[tile_id + 1])
@@ -398,7 +398,7 @@ def test_rejects_bad_input():
             _cpu.composite(p.means2d, p.conics, p.opacities, colors, None, bad, 16, 16)
 
 
-# --- frozen geometry: blend weights (RASTERIZER.md §9) -------------------------
+# --- frozen geometry: blend weights (docs/rasterizer.md §9) -------------------------
 
 
 def _dense(csr, rows, cols):
@@ -499,7 +499,7 @@ def test_spmm_general_shapes():
     assert torch.equal(_dense(wt, 23, 37), dense.T)
 
 
-# --- compiled projection and tile binning (RASTERIZER.md §1, §2) ----------------
+# --- compiled projection and tile binning (docs/rasterizer.md §1, §2) ----------------
 #
 # The kernel mirrors `_common.project` but does its per-Gaussian algebra in float64
 # (rounded to float32 once), so it is compared with `_common.project` run in float64
@@ -547,7 +547,7 @@ def _wide_scene(n, width, height, seed):
 
 
 def _hard_gaussians():
-    """RASTERIZER.md §6 case 3 (float32), opacity 0.1."""
+    """docs/rasterizer.md §6 case 3 (float32), opacity 0.1."""
     means = torch.tensor(
         [
             [0.1, 0.0, 3.0],  # 0 zero scale on one axis

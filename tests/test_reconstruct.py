@@ -389,7 +389,7 @@ def test_no_train_views_or_points_are_clear_errors(tmp_path):
 
 
 def _authors_release(folder: Path, scene, it=7000, nets=True, names="authors"):
-    """Files in the released WE-GS format, random tensors (PAPER_SPEC.md §2)."""
+    """Files in the released WE-GS format, random tensors (docs/method.md §2)."""
     from ptovs.nets import WildNets
 
     folder.mkdir(parents=True, exist_ok=True)

@@ -152,7 +152,7 @@ def _toy_view(n=40, w=24, h=18, seed=0, levels=2, apps=3, u_t=None, u_a=None):
 
 
 def _dense_reference_loss(f64, bw, segs, codes, u_t, u_a, variant):
-    """The loss of PAPER_SPEC §7 on dense float64 images (no compaction)."""
+    """The loss of docs/method.md §7 on dense float64 images (no compaction)."""
     n_lv, h, w = segs[0].shape
     hw = h * w
     wmat = bw.W.to_dense().double()  # [HW, P]

@@ -146,7 +146,7 @@ def _write_group(group: h5py.Group, datasets: Mapping[str, Any]) -> None:
         kwargs: dict[str, Any] = {}
         compression = spec.compression
         if compression is None and arr.dtype.kind in "biu" and arr.size >= 4096:
-            compression = "gzip"  # label maps: tiny under gzip (ENVIRONMENT.md §7)
+            compression = "gzip"  # label maps: tiny under gzip (docs/environment.md §7)
         if compression and arr.ndim > 0 and arr.size > 0:
             kwargs = dict(compression=compression, shuffle=True)
             if compression == "gzip":

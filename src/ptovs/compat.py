@@ -4,7 +4,7 @@ torchvision 0.28.0 on PyPI is a CUDA build whose compiled ops cannot register
 against the CPU torch wheel; `import torchvision` then fails in
 `torchvision._meta_registrations` ("operator torchvision::nms does not exist").
 Its pure-Python parts (transforms, box utilities) work once that module is
-stubbed (ENVIRONMENT.md §4). Every backend imports torchvision, open_clip or
+stubbed (docs/environment.md §4). Every backend imports torchvision, open_clip or
 segment_anything through `import_backend`, so the stub is installed exactly once,
 before the first import. ptovs never calls torchvision's C++ ops (nms,
 roi_align); `ptovs.segment.masks` has its own box NMS.

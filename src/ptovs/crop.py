@@ -1,4 +1,4 @@
-"""The LangSplat crop of one segment: what an encoder embeds (PAPER_SPEC 4).
+"""The LangSplat crop of one segment: what an encoder embeds (docs/method.md §4).
 
 Below the encoders and the synthetic world alike: extract-features crops segments
 with it, the synthetic world's screen crops truth masks with it, and
@@ -12,7 +12,7 @@ import numpy as np
 
 
 def prepare_crop(image: np.ndarray, mask: np.ndarray, size: int = 224) -> np.ndarray:
-    """The LangSplat crop of one segment (PAPER_SPEC 4).
+    """The LangSplat crop of one segment (docs/method.md §4).
 
     Pixels outside the mask are zeroed, the mask's bounding box is cut out, padded
     to a centred black square and resized to size x size with cv2.resize

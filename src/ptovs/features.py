@@ -1,6 +1,6 @@
 """Multi-level segment features of one image: an id map plus a table of rows.
 
-PAPER_SPEC.md §1.3. For each image (an original photo or a render) and each level
+docs/method.md §1.3. For each image (an original photo or a render) and each level
 ℓ, segments are numbered by GLOBAL table row: level ℓ's rows follow the rows of the
 levels before it, so
 

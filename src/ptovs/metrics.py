@@ -1,4 +1,4 @@
-"""Segmentation metrics and their tables (PAPER_SPEC.md §9): per pair, per scene.
+"""Segmentation metrics and their tables (docs/method.md §9): per pair, per scene.
 
 Per (image, category) pair: IoU = |P∧G|/|P∨G|; PA = (TP + TN)/(H·W) (binary pixel
 accuracy, background included); P = TP/(TP + FP). A scene's mIoU, mPA and mP are

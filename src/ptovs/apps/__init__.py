@@ -1,4 +1,4 @@
-"""What a user does with a trained language field (PAPER_SPEC.md §10).
+"""What a user does with a trained language field (docs/method.md §10).
 
 `APP_MODULES` maps each application subcommand to its module; like the stages,
 the CLI imports a module only when its command runs. Applications are not

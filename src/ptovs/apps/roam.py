@@ -11,7 +11,7 @@ appearance (an image's embedding or the neutral mean) and highlights the text:
 "select" (default) renders the 3-D selection of `ptovs select` as a mask, so the
 region is the same object in every frame; "query" answers the text per frame
 like `ptovs query` (its relative threshold always marks something). The mask is
-tinted and its Canny edges drawn at α = 0.5 (PAPER_SPEC.md §10), the text in a
+tinted and its Canny edges drawn at α = 0.5 (docs/method.md §10), the text in a
 bar under the frame. Written with OpenCV's VideoWriter (mp4v), atomically.
 """
 

@@ -1,4 +1,4 @@
-"""3-D selection to a standard Gaussian-splat PLY (PAPER_SPEC.md §10.1).
+"""3-D selection to a standard Gaussian-splat PLY (docs/method.md §10.1).
 
     ptovs select --data data/bench_s0 "Rose Window" --out sel.ply [--rest rest.ply]
 

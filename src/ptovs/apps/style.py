@@ -1,4 +1,4 @@
-"""Architectural-style recognition by voting over views (PAPER_SPEC.md §10.2).
+"""Architectural-style recognition by voting over views (docs/method.md §10.2).
 
     ptovs style --data data/bench_s0 --candidates "Neoclassical,Georgian,Palladian"
 

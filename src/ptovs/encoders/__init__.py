@@ -77,7 +77,7 @@ def get_encoder(name: str, **kwargs) -> Encoder:
     """Build an encoder by name.
 
     Args:
-        name: "synthetic" (the stand-in of SYNTHETIC.md; kwargs: vocabulary=path
+        name: "synthetic" (the stand-in of docs/standin.md; kwargs: vocabulary=path
             or dict) or "openclip" (OpenCLIP from a local checkpoint, extra
             `[clip]`; kwargs: model=, checkpoint=, device=, batch_size=; "clip"
             is accepted as an alias).

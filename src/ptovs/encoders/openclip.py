@@ -1,4 +1,4 @@
-"""OpenCLIP as the image/text encoder (extra `[clip]`; PAPER_SPEC.md §4).
+"""OpenCLIP as the image/text encoder (extra `[clip]`; docs/method.md §4).
 
 The paper uses `ViT-B-16` / `laion2b_s34b_b88k`. Nothing is downloaded: the
 weights come from a local checkpoint file (`clip_checkpoint`), loaded with
@@ -31,7 +31,7 @@ TINY_CONFIG = dict(
 
 
 def register_tiny() -> str:
-    """Register a 3.6 M-parameter OpenCLIP config for tests (ENVIRONMENT.md §5)."""
+    """Register a 3.6 M-parameter OpenCLIP config for tests (docs/environment.md §5)."""
     oc = import_backend("open_clip")
     oc.factory._MODEL_CONFIGS[TINY] = TINY_CONFIG  # private API: open_clip 3.3 pinned
     return TINY

@@ -1,4 +1,4 @@
-"""The stand-in for CLIP (SYNTHETIC.md, "The stand-in encoder").
+"""The stand-in for CLIP (docs/standin.md).
 
 Image side: a fixed function of pixels. A crop is reduced to 32 x 32 (area
 average; pixels that are exactly black count as outside the mask), and pooled

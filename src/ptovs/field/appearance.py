@@ -1,4 +1,4 @@
-"""Choosing the novel appearances a scene is rendered under (PAPER_SPEC.md §3).
+"""Choosing the novel appearances a scene is rendered under (docs/method.md §3).
 
 The paper picks N−1 target images j under two constraints: their self-render is
 good (‖f_render(I_j, l_j) − I_j‖ < ε_q) and they are diverse (Manhattan distance of

@@ -1,4 +1,4 @@
-"""Import of the authors' released WE-GS models (PAPER_SPEC.md §2, `import_dir`).
+"""Import of the authors' released WE-GS models (docs/method.md §2, `import_dir`).
 
 A release folder holds some of:
 
@@ -12,7 +12,7 @@ Every file is read with `torch.load(weights_only=True)`: a file that needs more 
 tensors and plain containers to unpickle is refused. Network weights are matched to
 the `authors` preset of `ptovs.nets.WildNets` by parameter name suffix when the names
 agree, else by the order and shapes of the tensors (the layer sequence of
-PAPER_SPEC.md §2); a file whose tensors do not fit is refused naming the network.
+docs/method.md §2); a file whose tensors do not fit is refused naming the network.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Multi-appearance language Gaussians (MALE-GS, PAPER_SPEC.md §7): the trainable core.
+"""Multi-appearance language Gaussians (MALE-GS, docs/method.md §7): the trainable core.
 
 Every Gaussian holds, per level ℓ and appearance slot a, a 3-d code; the codes are
 stored as f [P, L·A·3] (level-major, then slot, then xyz) and every 3-chunk is

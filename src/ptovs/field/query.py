@@ -1,4 +1,4 @@
-"""Answering text queries on a trained language field (PAPER_SPEC.md §8).
+"""Answering text queries on a trained language field (docs/method.md §8).
 
 The readers of the language chain's artifacts that more than one command uses: the
 `query` stage, `evaluate`, the applications (`select`, `style`, `roam`) and the
@@ -298,7 +298,7 @@ class Querier:
 
     @torch.no_grad()
     def code_maps(self, view) -> tuple[torch.Tensor, torch.Tensor]:
-        """[L, A, H, W, 3] rendered codes (not renormalised, PAPER_SPEC.md §8) and
+        """[L, A, H, W, 3] rendered codes (not renormalised, docs/method.md §8) and
         the [H, W] accumulated opacity, for a scene view or a `Camera`."""
         out = render(
             self.gaussians,

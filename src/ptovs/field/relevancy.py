@@ -1,4 +1,4 @@
-"""Text queries against rendered language codes (PAPER_SPEC.md §8).
+"""Text queries against rendered language codes (docs/method.md §8).
 
 The chain for one view and one query, all of it here so that `query`, `select`
 and the tests share it:
@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 CANONICAL = ("object", "things", "scene", "sky", "building")
-"""The supplement's canonical phrases (PAPER_SPEC.md §8)."""
+"""The supplement's canonical phrases (docs/method.md §8)."""
 BACKGROUND_PHRASES = ("sky", "background")
 FUSIONS = ("weighted", "imglvlmax", "pixmax", "pixavg", "pixweighted")
 BACKGROUND_FILTERS = ("paper", "code", "off")
@@ -240,7 +240,7 @@ def background(
 def fuse(scores: Tensor, mode: str = "weighted") -> Tensor:
     """Post-ensemble over appearances: [L, N, H, W] → [L, H, W].
 
-    Modes (PAPER_SPEC.md §8): "weighted" (the paper's: w_i = max_x s_i / Σ_j
+    Modes (docs/method.md §8): "weighted" (the paper's: w_i = max_x s_i / Σ_j
     max_x s_j, then Σ_i w_i s_i), "imglvlmax" (per level the appearance map with
     the largest max; the level choice then picks among all N × L maps),
     "pixmax", "pixavg", "pixweighted" (w_i(x) ∝ 1/((s_i − mean_i s_i)² + 1e-6)).
@@ -424,7 +424,7 @@ def select(
     valid: Tensor | None = None,
     neighbors: Tensor | None = None,
 ) -> Selection:
-    """The 3-D query (PAPER_SPEC.md §10.1): per Gaussian instead of per pixel.
+    """The 3-D query (docs/method.md §10.1): per Gaussian instead of per pixel.
 
     The same background filter, fusion and level choice as `finish`, with the
     Gaussians in place of pixels (weights w_a from the max over Gaussians), no

@@ -1,4 +1,4 @@
-"""Training of the in-the-wild Gaussian field (PAPER_SPEC.md §2), checkpointed.
+"""Training of the in-the-wild Gaussian field (docs/method.md §2), checkpointed.
 
 One random train view per iteration (a seeded permutation per epoch, so the order
 does not depend on where a run was resumed):

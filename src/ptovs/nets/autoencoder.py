@@ -1,4 +1,4 @@
-"""The language autoencoder 512 → 3 → 512 (PAPER_SPEC.md §6; LangSplat's layout).
+"""The language autoencoder 512 → 3 → 512 (docs/method.md §6; LangSplat's layout).
 
 ```python
 ae = LanguageAE()

@@ -1,4 +1,6 @@
-"""The in-the-wild appearance networks of WE-GS as the paper uses them (PAPER_SPEC.md §2).
+"""The in-the-wild appearance networks of WE-GS as the paper uses them.
+
+Layers, sizes and the paper's and authors' choices: docs/method.md §2.
 
 - f_α `AppearanceEncoder`: image (+ transient mask) -> appearance embedding l ∈ R^32.
 - f_β `TransientNet`: image -> transient mask M in [0, 1] (U-Lite-style axial U-Net).

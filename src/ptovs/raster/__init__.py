@@ -1,4 +1,6 @@
-"""Differentiable 3D Gaussian rasterizer (RASTERIZER.md). Stages import only from here.
+"""Differentiable 3D Gaussian rasterizer (docs/rasterizer.md).
+
+Stages import only from here.
 
 ```python
 from ptovs.raster import Camera, Gaussians, render
@@ -19,7 +21,7 @@ This file is the package's face; the modules behind it are private to the packag
 - `_cpu`: the compiled C++ kernel (built on first use) and its autograd glue
 - `_backends`: which backends exist, work here, and which one a call gets
 - `_render`: `render` and its one-time input validation
-- `_blend`: frozen-geometry blend weights as sparse matrices (RASTERIZER.md §9)
+- `_blend`: frozen-geometry blend weights as sparse matrices (docs/rasterizer.md §9)
 - `_sh`: real spherical harmonics up to degree 3
 """
 

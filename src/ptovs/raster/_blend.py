@@ -1,4 +1,4 @@
-"""Frozen geometry (RASTERIZER.md §9): per-pixel blend weights as a sparse matrix,
+"""Frozen geometry (docs/rasterizer.md §9): per-pixel blend weights as a sparse matrix,
 so a feature field renders by one sparse product per view.
 """
 
@@ -18,7 +18,7 @@ from ptovs.raster._common import (
 )
 from ptovs.raster._render import project_and_bin, validate
 
-# --- frozen geometry: sparse blend weights (RASTERIZER.md §9) ----------------
+# --- frozen geometry: sparse blend weights (docs/rasterizer.md §9) ----------------
 
 
 class _SpMM(torch.autograd.Function):

@@ -1,4 +1,4 @@
-"""Geometry shared by every rasterizer backend (RASTERIZER.md §1, §2 and §5).
+"""Geometry shared by every rasterizer backend (docs/rasterizer.md §1, §2 and §5).
 
 `project` is the differentiable EWA projection (plain torch autograd) and `intersect`
 the vectorised, gradient-free tile binning. Every backend calls both and differs only
@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-# RASTERIZER.md §5. Changing any of these changes rendered images: bump VERSION.
+# docs/rasterizer.md §5. Changing any of these changes rendered images: bump VERSION.
 ALPHA_THRESHOLD = 1.0 / 255.0  # skip a pair below it
 MAX_ALPHA = 0.99  # Inria, LangSplat and gsplat HEAD (gsplat <= 1.5.3: 0.999)
 TRANSMITTANCE_THRESHOLD = 1e-4  # exclusive stop: next_T <= 1e-4
@@ -165,7 +165,7 @@ def project(
     antialias: bool = False,
     tile: int = 16,
 ) -> Projected:
-    """EWA projection of 3D Gaussians to 2D splats (RASTERIZER.md §1), differentiable.
+    """Differentiable EWA projection of Gaussians to splats (docs/rasterizer.md §1).
 
     The camera is cast to the Gaussians' dtype and device. Culled Gaussians (depth
     outside (near, far), det <= 0 or non-finite, box off the image) get radii (0, 0)
@@ -299,7 +299,7 @@ def _depth_sort_key(depths: Tensor) -> Tensor:
 
 @torch.no_grad()
 def intersect(p: Projected, width: int, height: int, tile: int) -> Isect:
-    """Bin splats into tiles (RASTERIZER.md §2), fully vectorised, no gradients.
+    """Bin splats into tiles (docs/rasterizer.md §2), fully vectorised, no gradients.
 
     A Gaussian covers tiles [floor((u - r_x) / tile), ceil((u + r_x) / tile)) clamped
     to the grid (the same in y). Within a tile, ids are sorted by float32 depth, ties

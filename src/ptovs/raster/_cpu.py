@@ -1,4 +1,6 @@
-"""Compiled CPU rasterizer, csrc/project.cpp + composite.cpp (RASTERIZER.md §1–§4, §9).
+"""Compiled CPU rasterizer, csrc/project.cpp + composite.cpp.
+
+The maths: docs/rasterizer.md §1–§4 and §9.
 
 The kernel is built on first use with `torch.utils.cpp_extension.load` (ninja and the
 system C++ compiler) into `<cache>/torch_ext/<name>/`, where `<cache>` is
@@ -16,7 +18,7 @@ Entry points:
 - `intersect(...)`: `_common.intersect`, compiled, bit-identical.
 - `composite(...)`: autograd forward/backward with the reference's signature.
 - `build_blend_weights(...)`, `apply(...)`, `spmm(...)`, `blend_weights_coo(...)`:
-  the frozen-geometry fast path (RASTERIZER.md §9): F = W f and its backward W^T g.
+  the frozen-geometry fast path (docs/rasterizer.md §9): F = W f and its backward W^T g.
 """
 
 from __future__ import annotations
@@ -385,7 +387,7 @@ def composite(
     return image, alpha, n_contrib
 
 
-# Projection and tile binning (RASTERIZER.md §1, §2), mirroring `_common`.
+# Projection and tile binning (docs/rasterizer.md §1, §2), mirroring `_common`.
 
 
 def _camera_params(cam: Camera, near: float, far: float) -> Tensor:
@@ -578,7 +580,8 @@ def intersect(p: Projected, width: int, height: int, tile: int) -> Isect:
     )
 
 
-# Frozen geometry (RASTERIZER.md §9): W [H*W, N] holds alpha_i T_i per composited pair.
+# Frozen geometry (docs/rasterizer.md §9): W [H*W, N] holds alpha_i T_i per composited
+# pair.
 
 Csr = tuple[
     Tensor, Tensor, Tensor
@@ -652,7 +655,7 @@ def build_blend_weights(
     width: int,
     height: int,
 ) -> tuple[Csr, Csr]:
-    """Blend-weight matrices of a frozen geometry and view (RASTERIZER.md §9).
+    """Blend-weight matrices of a frozen geometry and view (docs/rasterizer.md §9).
 
     W [H*W, N] holds w = alpha_i T_i for every composited (pixel, Gaussian) pair, with
     the forward's skip and stop rules, so that `W @ f` equals `composite(..., f, None,

@@ -1,4 +1,4 @@
-"""Pure-torch compositing: the oracle for every backend (RASTERIZER.md §3).
+"""Pure-torch compositing: the oracle for every backend (docs/rasterizer.md §3).
 
 Two passes, no Python loop over Gaussians or pixels:
 
@@ -332,7 +332,7 @@ def composite(
     width: int,
     height: int,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Alpha-composite splats front to back, differentiable (RASTERIZER.md §3).
+    """Alpha-composite splats front to back, differentiable (docs/rasterizer.md §3).
 
     Gradients flow to means2d, conics, opacities, colors and background.
 

@@ -160,7 +160,7 @@ def render(
     antialias: bool = False,
     depth: bool = True,
 ) -> RenderOutput:
-    """Rasterize Gaussians carrying D channels; differentiable (RASTERIZER.md §1–§4).
+    """Differentiably rasterize Gaussians with D channels (docs/rasterizer.md §1–§4).
 
     Gradients flow to means, quats, scales, opacities, colors and background. Every
     backend gives the same result up to float rounding.

@@ -5,7 +5,7 @@ The package face; the rooms: `views` (Scene, View), `load` (load_scene), `colmap
 decoding, per-pixel maps) and `labels` (ISAT JSONs).
 
 Every later stage reads its scene through this module, so the rules below hold for
-the whole pipeline (PAPER_SPEC.md §1 and §9).
+the whole pipeline (docs/method.md §1 and §9).
 
 Layouts (detected by `load_scene`):
 - PhotoTourism: `<scene>/dense/images/`, `<scene>/dense/sparse/` (the model directly

@@ -157,7 +157,7 @@ def load_labels(
     *,
     gt_resize: str = "nearest",
 ) -> dict[str, np.ndarray]:
-    """Ground-truth masks of one labelled view (PAPER_SPEC §1.2, §9).
+    """Ground-truth masks of one labelled view (docs/method.md §1.2, §9).
 
     Args:
         source: the Scene (its `labels_dir`) or a labels folder.

@@ -1,4 +1,4 @@
-"""Segmenters: one image in, L levels of segments out (PAPER_SPEC.md §4).
+"""Segmenters: one image in, L levels of segments out (docs/method.md §4).
 
 ```python
 seg = get_segmenter("graph", levels=("s", "m", "l"))

@@ -1,9 +1,9 @@
 """Felzenszwalb graph segmentation as the CPU stand-in for SAM's levels.
 
 One OpenCV `ximgproc` graph segmentation per level, coarser k for coarser levels
-(PAPER_SPEC.md §4: k = 100/300/1000/3000 for default/s/m/l). `min_size` scales with
+(docs/method.md §4: k = 100/300/1000/3000 for default/s/m/l). `min_size` scales with
 the image area so a level means the same on a 96-px and a 512-px image (100 px at
-512×384, the ENVIRONMENT.md measurement). Every pixel gets a segment.
+512×384, as measured in docs/environment.md §3). Every pixel gets a segment.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Mask bookkeeping shared by the segmenters: box NMS, LangSplat's mask NMS, painting.
 
-`mask_nms` is LangSplat's per-level filter (`masks_update` / `mask_nms`, PAPER_SPEC.md
+`mask_nms` is LangSplat's per-level filter (`masks_update` / `mask_nms`, docs/method.md
 §4) computed with one matrix product instead of its O(n²) Python loop;
 `mask_nms_reference` is the plain loop, kept as the oracle for tests. `box_nms` is a
 pure-torch greedy NMS (torchvision's compiled `nms` does not load on our CPU torch).

@@ -1,4 +1,4 @@
-"""segment-anything as a multi-level segmenter (LangSplat's recipe, PAPER_SPEC.md §4).
+"""segment-anything as a multi-level segmenter (LangSplat's recipe, docs/method.md §4).
 
 LangSplat runs a fork of SAM whose automatic mask generator keeps SAM's three
 multimask outputs apart: s, m and l are outputs 0, 1 and 2, "default" pools all

@@ -1,4 +1,4 @@
-"""Score the query masks against the scene's labels: mIoU, mPA, mP (PAPER_SPEC.md §9).
+"""Score the query masks against the scene's labels: mIoU, mPA, mP (docs/method.md §9).
 
     ptovs evaluate --data data/bench_s0 [--variant male --variant langsplat ...]
 

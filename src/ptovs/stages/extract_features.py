@@ -1,4 +1,4 @@
-"""Multi-level language features of every original image and render (PAPER_SPEC.md §4).
+"""Multi-level language features of every original image and render (docs/method.md §4).
 
 Reads render-appearances. For each train view and each image of it (the original
 photo, the N−1 novel renders, the self render): segment at L levels (default 3:

@@ -1,4 +1,4 @@
-"""Open-vocabulary queries: text in, per-view relevancy maps and masks out (PAPER_SPEC.md §8).
+"""Open-vocabulary queries: text in, per-view relevancy maps and masks out (docs/method.md §8).
 
     ptovs query --data data/bench_s0 "Dome" "Ionic Column" [--views 00000003 ...]
 

@@ -1,4 +1,4 @@
-"""Reconstruct: photos -> in-the-wild Gaussian radiance field (PAPER_SPEC.md §2).
+"""Reconstruct: photos -> in-the-wild Gaussian radiance field (docs/method.md §2).
 
 Trains 3D Gaussians from the scene's points3D with the WE-GS appearance networks
 (f_α embeds an image and its transient mask, f_β predicts the transient mask, f_γ
@@ -78,8 +78,8 @@ class Config:
     seed: int = 0
     ssim_lambda: float = 0.2
     mask_reg: float = 0.3
-    """β in β·mean(M): without it the transient mask grows to 1 (PAPER_SPEC.md
-    says 0.15 for 30k iterations; at CPU budgets 0.15 let f_β mask whole hard
+    """β in β·mean(M): without it the transient mask grows to 1 (docs/method.md
+    §2 gives 0.15 for 30k iterations; at CPU budgets 0.15 let f_β mask whole hard
     photos early in training, measured on the bench preset)."""
     mask_warmup: int = 500
     """Iterations trained unmasked before the transient mask enters the loss."""

@@ -1,4 +1,4 @@
-"""Render every training view under N appearances (PAPER_SPEC.md §3).
+"""Render every training view under N appearances (docs/method.md §3).
 
 Reads reconstruct. Chooses N−1 novel target appearances (the paper's ids for the
 seven PT-OVS scenes, else by render quality and embedding diversity, or an explicit

@@ -1,4 +1,4 @@
-"""Train the transient-aware language autoencoder 512 → 3 → 512 (PAPER_SPEC.md §6).
+"""Train the transient-aware language autoencoder 512 → 3 → 512 (docs/method.md §6).
 
 Reads extract-features (and uncertainty, unless `weighting = "none"` and
 `tau_u = 1`). Samples are the ORIGINAL images' segment rows at every stored level

@@ -1,4 +1,4 @@
-"""Train the multi-appearance language Gaussians on frozen geometry (PAPER_SPEC.md §7):
+"""Train the multi-appearance language Gaussians on frozen geometry (docs/method.md §7):
 by the training-free lift (default) or the paper's optimiser (`mode = "optimise"`).
 
 Reads reconstruct (the Gaussians, frozen), train-ae (3-d codes of every table),

@@ -1,4 +1,4 @@
-"""Transient and appearance uncertainty per training view (PAPER_SPEC.md §5).
+"""Transient and appearance uncertainty per training view (docs/method.md §5).
 
 Reads extract-features. Per pixel and level, with F the segment feature there:
 

@@ -1,4 +1,4 @@
-"""Synthetic landmark scenes with exact ground truth (SYNTHETIC.md).
+"""Synthetic landmark scenes with exact ground truth (docs/synthetic.md).
 
 from ptovs.synthetic import generate_scene
 scene_dir = generate_scene(Path("data/synth"), preset="tiny", seed=0)

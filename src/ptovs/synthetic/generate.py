@@ -1,4 +1,4 @@
-"""Presets and the on-disk layout of a synthetic PT-OVS scene (SYNTHETIC.md).
+"""Presets and the on-disk layout of a synthetic PT-OVS scene (docs/synthetic.md).
 
 `generate_scene` writes, image by image (memory stays bounded for `scale`):
 
@@ -233,7 +233,7 @@ def isat_label(
     folder: str,
     min_px: int,
 ) -> dict:
-    """ISAT JSON (PAPER_SPEC 1.2) of one evaluation image from its part-id map.
+    """ISAT JSON (docs/method.md §1.2) of one evaluation image from its part-id map.
 
     Args:
         part_id: truth part ids, [H, W].

@@ -1,4 +1,4 @@
-// Compiled CPU compositing for ptovs.raster (maths: docs RASTERIZER.md §3, §4, §9).
+// Compiled CPU compositing for ptovs.raster (maths: docs/rasterizer.md §3, §4, §9).
 //
 // Plain C ABI, loaded with ctypes: no torch or pybind11 headers, so a cold build takes
 // a few seconds and ctypes releases the GIL for the duration of a call.
@@ -35,7 +35,7 @@
 
 namespace {
 
-// RASTERIZER.md §5.
+// docs/rasterizer.md §5.
 constexpr float kAlphaThreshold = 1.0f / 255.0f;
 constexpr float kMaxAlpha = 0.99f;
 constexpr float kTransmittanceThreshold = 1e-4f;
@@ -393,7 +393,7 @@ int forward_tiles(const GParam* gp, const float* colors, const int d_, const flo
 }
 
 
-// Backward over all tiles (RASTERIZER.md §4). v_image [H, W, D], v_alpha [H, W];
+// Backward over all tiles (docs/rasterizer.md §4). v_image [H, W, D], v_alpha [H, W];
 // grads [nt, N, 6 + D] (any contents: zeroed here, one slice per thread, then summed
 // into slice 0, which holds the result), per Gaussian the sums over its pixels of
 // (v_sigma dx, v_sigma dy, v_sigma dx^2, v_sigma dx dy, v_sigma dy^2, v_opacity,

@@ -1,4 +1,4 @@
-// Compiled projection and tile binning for ptovs.raster (maths: RASTERIZER.md §1, §2).
+// Compiled projection and tile binning for ptovs.raster (maths: docs/rasterizer.md §1, §2).
 //
 // Plain C ABI (ctypes), compiled into the same library as composite.cpp.
 //
@@ -32,7 +32,7 @@
 
 namespace {
 
-// RASTERIZER.md §5, as in _common.py.
+// docs/rasterizer.md §5, as in _common.py.
 constexpr double kEps2d = 0.3;
 constexpr float kEps2dF = 0.3f;  // torch adds EPS2D to a float32 tensor in float32
 constexpr float kExtendF = 3.33f;  // GAUSSIAN_EXTEND times a float32 tensor

@@ -1,6 +1,6 @@
 """Procedural landmark world: primitives, textures, appearance, ray casting.
 
-The synthetic test bed of SYNTHETIC.md. A landmark is a union of analytic
+The synthetic test bed of docs/synthetic.md. A landmark is a union of analytic
 primitives (convex polytopes: boxes, triangular prisms and thin panels; vertical
 cylinders and cones; spheres clipped into domes), each belonging to a named part
 with a solid procedural texture. Around it: a ground plane (z = 0) and a sky.
