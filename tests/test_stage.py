@@ -106,6 +106,32 @@ def test_bad_config_is_a_clear_error(env, tmp_path: Path):
     assert r.exit_code == 1 and "nowhere" in r.output and "synth-scene" in r.output
 
 
+def test_a_misspelt_section_or_key_is_an_error_in_every_door(env, tmp_path: Path):
+    """The group's --set, a stage's --set and a --config file: a misspelt section
+    or key never runs with the default silently, and the error names the fix."""
+    data = str(env["data"])
+    for args, near in (
+        (["--set", "toy-veiws.gain=2", "toy-views", "--data", data], "[toy-views]"),
+        (["--set", "toy-views.gian=2", "toy-views", "--data", data], "'gain'"),
+        (["toy-views", "--data", data, "--set", "gian=2"], "gain"),
+        (["toy-views", "--data", data, "--set", "toy-veiws.gain=2"], "'toy-views'?"),
+    ):
+        r = env["invoke"](*args, ok=False)
+        assert r.exit_code != 0, args
+        assert near in r.output and "Traceback" not in r.output, (args, r.output)
+    for text, near in (
+        ("[toy-veiws]\ngain = 2\n", "did you mean [toy-views]"),
+        ("[toy-views]\ngian = 2\n", "did you mean 'gain'"),
+        ("[toy-views]\ngain = 'two'\n", "toy-views.gain"),
+        ("scene = 3\n", "must be a table"),
+    ):
+        bad = tmp_path / "bad.toml"
+        bad.write_text(text)
+        r = env["invoke"]("--config", str(bad), "toy-views", "--data", data, ok=False)
+        assert r.exit_code == 1 and near in r.output, (text, r.output)
+    assert not (Path(env["work"]) / "tiny_s0" / "toy-views").exists()
+
+
 def test_status_reports_done_missing_stale(env):
     invoke, data = env["invoke"], str(env["data"])
     r = invoke("status", "--data", data)

@@ -176,6 +176,10 @@ def main(
         torch.set_num_threads(threads)
     try:
         config = merge(load_config(config_file), parse_sets(sets))
+        if config:
+            from ptovs.stage import check_config
+
+            check_config(config, "--config/--set")
     except (InputError, MissingInputError) as exc:
         raise click.ClickException(str(exc)) from None
     if work_dir is None:

@@ -151,6 +151,43 @@ def get_stage(name: str) -> StageSpec:
     return REGISTRY[name]
 
 
+def check_config(config: Mapping[str, Any], origin: str = "the config") -> None:
+    """Every section and key of a merged config (`--config` file plus the group's
+    `--set` items), checked before anything runs: an unknown section or key, or a
+    value of the wrong type, is an InputError with the nearest valid name."""
+    import difflib
+
+    sections = list(dict.fromkeys([SCENE, *STAGE_MODULES, *REGISTRY]))
+    for name, section in config.items():
+        if name not in sections:
+            near = difflib.get_close_matches(name, sections, n=1)
+            raise InputError(
+                f"{origin}: unknown section [{name}]"
+                + (f" (did you mean [{near[0]}]?)" if near else "")
+                + f"; sections: {', '.join(sections)}"
+            )
+        if not isinstance(section, Mapping):
+            raise InputError(
+                f"{origin}: [{name}] must be a table of KEY = VALUE, got {section!r}"
+            )
+        if name == SCENE:
+            cls = SceneConfig
+        elif name == SFM:
+            from ptovs.sfm import SfmConfig as cls
+        else:
+            cls = get_stage(name).config_cls
+        keys = [f.name for f in dataclasses.fields(cls)]
+        for key in section:
+            if key not in keys:
+                near = difflib.get_close_matches(key, keys, n=1)
+                raise InputError(
+                    f"{origin}: [{name}] has no key {key!r}"
+                    + (f" (did you mean {near[0]!r}?)" if near else "")
+                    + f"; valid keys: {', '.join(sorted(keys))}"
+                )
+        build_config(cls, section, name)  # the values' types
+
+
 @dataclass
 class RunContext:
     """What the `ptovs` group resolved: shared by every subcommand of one call."""
@@ -490,8 +527,17 @@ def split_sets(
         if not dot:
             section, rest = default or "", key
         if not eq or not rest.strip() or section not in out:
+            import difflib
+
+            near = difflib.get_close_matches(section, allowed, n=1) if dot else []
             raise click.UsageError(
-                f"--set {item!r}: write STAGE.KEY=VALUE with STAGE one of "
+                f"--set {item!r}: "
+                + (
+                    f"no stage {section!r} (did you mean {near[0]!r}?); "
+                    if near
+                    else ""
+                )
+                + "write STAGE.KEY=VALUE with STAGE one of "
                 f"{', '.join(allowed)} (e.g. --set extract-features.segmenter=graph)"
                 + (f", or KEY=VALUE for [{default}]" if default else "")
             )
