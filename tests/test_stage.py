@@ -168,6 +168,27 @@ def test_status_reports_done_missing_stale(env):
     )
 
 
+def _tree(root: Path) -> dict[str, tuple[int, int]]:
+    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns)
+            for p in sorted(root.rglob("*"))} if root.exists() else {}  # fmt: skip
+
+
+def test_read_only_commands_write_nothing(env, tmp_path: Path):
+    """status (on an empty work dir, then beside artifacts, from another folder)
+    and --help leave the work dir and the scene folder as they were, and status
+    says which work dir it read."""
+    invoke, data, work = env["invoke"], str(env["data"]), Path(env["work"])
+    r = invoke("status", "--data", data)
+    assert f"work dir: {work.resolve()}" in r.output
+    assert not work.exists()  # not even the fingerprint cache
+    invoke("toy-views", "--data", data)
+    before = _tree(work), _tree(Path(data))
+    for args in (["status", "--data", data], ["--set", "toy-views.gain=3", "status",
+                 "--data", data], ["status", "--help"], ["toy-views", "--help"]):  # fmt: skip
+        invoke(*args)
+    assert (_tree(work), _tree(Path(data))) == before
+
+
 def test_status_says_corrupt_when_an_artifacts_identity_was_changed(env):
     import h5py
 

@@ -26,6 +26,7 @@ A per-key lock file serialises concurrent runs of the same stage.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import fcntl
 import hashlib
 import json
@@ -609,6 +610,12 @@ class Store:
         )
 
 
+# set by read-only commands (`ptovs status`): nothing may be written, caches included
+READ_ONLY: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "ptovs_read_only", default=False
+)
+
+
 def fingerprint_files(files: Iterable[Path], root: Path, cache: Path | None) -> str:
     """sha256 over (relative path, content sha256) of every file.
 
@@ -641,7 +648,7 @@ def fingerprint_files(files: Iterable[Path], root: Path, cache: Path | None) -> 
             memo[str(path)] = [st.st_size, st.st_mtime_ns, digest]
             changed = True
         records.append(f"{rel}:{digest}")
-    if cache is not None and changed:
+    if cache is not None and changed and not READ_ONLY.get():
         cache.parent.mkdir(parents=True, exist_ok=True)
         with atomic_file(cache, keep_suffix=False) as tmp:
             tmp.write_text(json.dumps(memo))

@@ -244,8 +244,21 @@ def status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:
     States: done; partial (an interrupted run, resumable); missing; stale (an
     artifact exists under an older key because an upstream or the config changed).
     A folder of unposed photos first shows its `sfm` stage; status never runs it.
+    It reads only: nothing is written, not even the photos' fingerprint cache.
     """
+    from ptovs.artifacts import READ_ONLY
+
+    token = READ_ONLY.set(True)
+    try:
+        _status(obj, scene_name, data)
+    finally:
+        READ_ONLY.reset(token)
+
+
+def _status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:
     from ptovs.stage import SFM, Chain, all_stages, pose_photos, scene_source
+
+    click.echo(f"work dir: {Path(obj.work_dir).resolve()}")
 
     name, folder, photos = scene_source(scene_name, data)
     sfm_line = None
