@@ -57,7 +57,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # Gaussians, 2.5 %, at relevancy score 0.477 on 2026-11-26's machine)
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo view test test-slurm lint format bench bench-accuracy bench-upstream bench-standin bench-multiapp all cluster scenes table status clean-work $(SCENES)
+.PHONY: setup demo view test system-deps test-slurm lint format bench bench-accuracy bench-upstream bench-standin bench-multiapp all cluster scenes table status clean-work $(SCENES)
 
 setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml
@@ -84,8 +84,13 @@ demo: setup
 view: setup
 	$(PTOVS) view --data $(QDATA)/tiny_s0
 
-test: setup
+test: setup system-deps
 	$(BIN)/python -m pytest -q
+
+# the system packages the tests need (g++, chromium, a single-node Slurm): installed
+# when run as root, else the one command to run is printed before the suite starts
+system-deps:
+	bash tools/system-deps.sh
 
 # the workflow on a real single-node Slurm alone (root; apt-get install slurm-wlm munge
 # slurmdbd mariadb-server): `make test` runs it too
