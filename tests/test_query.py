@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -257,6 +258,44 @@ def test_query_cli_writes_pictures_and_json_and_is_deterministic(queried, tmp_pa
         assert np.array_equal(
             cv2.imread(r["mask"], cv2.IMREAD_UNCHANGED), first[r["view"]]
         )
+
+
+def test_one_folder_holds_one_query_run(queried, tmp_path):
+    """A second query into the same folder replaces the first run's pictures:
+    results.json and the PNGs beside it always agree; a user's own file stays."""
+    work, data, _ = queried
+    from ptovs.scene import label_categories, load_scene
+
+    first, second = label_categories(load_scene(data))[:2]
+    out = tmp_path / "q"
+    run_cli(work, "query", first, "--data", str(data), "--out", str(out))
+    (out / "notes.txt").write_text("mine")
+    run_cli(work, "query", second, "--data", str(data), "--out", str(out))
+    res = json.loads((out / "results.json").read_text())["results"]
+    listed = {Path(r[k]).resolve() for r in res for k in ("mask", "heatmap", "overlay")}
+    assert {p.resolve() for p in out.rglob("*.png")} == listed
+    assert all(r["query"] == second for r in res)
+    assert (out / "notes.txt").read_text() == "mine"
+
+
+def test_clearing_a_previous_run_treats_its_json_as_hostile(tmp_path):
+    from ptovs.stages.query import clear_previous
+
+    out, outside = tmp_path / "out", tmp_path / "outside_mask.png"
+    (out / "v").mkdir(parents=True)
+    outside.write_bytes(b"keep")
+    ours = out / "v" / "wall_mask.png"
+    ours.write_bytes(b"x")
+    other = out / "v" / "photo.png"
+    other.write_bytes(b"keep")
+    (out / "results.json").write_text(json.dumps({"results": [
+        {"mask": str(ours), "overlay": str(outside), "heatmap": str(other)},
+        {"mask": "../../outside_mask.png"}, "junk", {"mask": 7}]}))  # fmt: skip
+    assert clear_previous(out) == 1
+    assert not ours.exists() and outside.read_bytes() == b"keep"
+    assert other.read_bytes() == b"keep" and not (out / "results.json").exists()
+    (out / "results.json").write_text("not json")
+    assert clear_previous(out) == 0
 
 
 def test_unknown_phrase_is_a_clear_error(queried):

@@ -124,6 +124,43 @@ def text_key(config: Config, scene_ref: Any) -> dict[str, str]:
     return keys | {"vocabulary": hashlib.sha256(path.read_bytes()).hexdigest()}
 
 
+PICTURES = ("mask", "heatmap", "overlay")
+
+
+def clear_previous(out: Path) -> int:
+    """Remove the pictures an earlier run listed in `out`/results.json, so that a
+    folder always holds one run: its results.json and exactly its pictures.
+
+    The old results.json is read as untrusted: only files inside `out` named
+    `*_{mask,heatmap,overlay}.png` are removed (then their emptied folders); other
+    files stay. Returns how many pictures were removed.
+    """
+    import json
+
+    path = out / "results.json"
+    if not path.is_file():
+        return 0
+    try:
+        records = json.loads(path.read_text()).get("results", [])
+    except (OSError, ValueError, AttributeError):
+        return 0
+    root = out.resolve()
+    removed = 0
+    for rec in records if isinstance(records, list) else []:
+        for kind in PICTURES:
+            p = rec.get(kind) if isinstance(rec, dict) else None
+            if not isinstance(p, str) or not p.endswith(f"_{kind}.png"):
+                continue
+            q = Path(p).resolve()
+            if q.is_relative_to(root) and q.is_file() and not Path(p).is_symlink():
+                q.unlink()
+                removed += 1
+                if q.parent != root and not any(q.parent.iterdir()):
+                    q.parent.rmdir()
+    path.unlink()
+    return removed
+
+
 def write_outputs(
     art: Artifact, scene: Any, out: Path, pictures: bool = True
 ) -> tuple[Path, list[dict]]:
@@ -138,6 +175,8 @@ def write_outputs(
 
     keys = ("mask", "level", "score", "seconds")
     meta, views = read_results(art, (*keys, "smoothed") if pictures else keys)
+    if clear_previous(out):
+        log.info("%s: replaced the pictures of the previous run", out)
     records = []
     for name, data in views.items():
         view = scene.view(name)
