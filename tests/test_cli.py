@@ -111,3 +111,50 @@ def test_openmp_threads_sleep_and_threads_option():
     # the user's own setting wins, either variable
     assert lines(env | {"OMP_WAIT_POLICY": "ACTIVE"})[0] == "None ACTIVE"
     assert lines(env | {"GOMP_SPINCOUNT": "10"})[0] == "10 None"
+
+
+def test_a_folder_inside_a_scene_names_the_scene_to_give(
+    tiny_scene_dir: Path, tmp_path
+):
+    """--data <scene>/dense, .../dense/images, .../sparse/N or a photo collection's
+    images/ would become a scene named "dense" or "images" that lost its split and
+    labels: each is refused with the folder to give instead."""
+    from ptovs.stage import scene_part
+
+    dense = tiny_scene_dir / "dense"
+    model = tmp_path / "colmap" / "sparse" / "0"
+    model.mkdir(parents=True)
+    (model / "cameras.bin").write_bytes(b"")
+    (tmp_path / "colmap" / "images").mkdir()
+    for folder, root in ((dense, tiny_scene_dir), (dense / "images", tiny_scene_dir),
+                         (dense / "sparse", tiny_scene_dir), (model, tmp_path / "colmap"),
+                         (tmp_path / "colmap" / "images", tmp_path / "colmap")):  # fmt: skip
+        got = scene_part(folder)
+        assert got is not None and got[0] == root.resolve(), folder
+    assert (
+        scene_part(tiny_scene_dir) is None and scene_part(tmp_path / "colmap") is None
+    )
+    r = CliRunner().invoke(
+        cli, ["--work-dir", str(tmp_path / "w"), "status", "--data", str(dense)]
+    )
+    assert r.exit_code == 1 and f"pass --data {tiny_scene_dir.resolve()}" in r.output
+    assert "Traceback" not in r.output and not (tmp_path / "w" / "dense").exists()
+
+
+def test_several_models_use_the_one_with_most_images(tmp_path: Path, caplog):
+    from ptovs.scene.colmap import find_model
+
+    sparse = tmp_path / "sparse"
+    for name, n in (("0", 3), ("1", 40), ("2", 12)):
+        d = sparse / name
+        d.mkdir(parents=True)
+        for f in ("cameras", "points3D"):
+            (d / f"{f}.txt").write_text("# empty\n")
+        rows = "".join(f"{i} 1 0 0 0 0 0 0 1 im{i}.jpg\n\n" for i in range(n))
+        (d / "images.txt").write_text("# header\n" + rows)
+    with caplog.at_level("WARNING"):
+        assert find_model(sparse) == (sparse / "1", "txt")
+    assert "1: 40 images" in caplog.text and "using 1" in caplog.text
+    (sparse / "1" / "images.txt").unlink()  # a broken model counts nothing
+    (sparse / "1" / "cameras.txt").unlink()
+    assert find_model(sparse) == (sparse / "2", "txt")

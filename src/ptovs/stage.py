@@ -636,6 +636,32 @@ def _scene_name(name: str, data: Path | None) -> tuple[str, Path | None]:
     )
 
 
+def scene_part(path: Path) -> tuple[Path, str] | None:
+    """(the scene folder, what `path` is in it) when `path` is a folder inside a
+    scene rather than the scene: PhotoTourism's `dense/`, a scene's `images/` or
+    `sparse/` (or a model `sparse/N`). Given as --data, such a folder would become a
+    scene named "dense" or "images" that has lost its split and labels."""
+    p = Path(path).resolve()
+    if not p.is_dir():
+        return None
+    if p.name == "dense" and (p / "images").is_dir():
+        return p.parent, "dense/ folder"
+    if p.name in ("images", "sparse"):
+        up = p.parent
+        if up.name == "dense" and (up / "sparse").is_dir():
+            return up.parent, f"dense/{p.name}/ folder"
+        return up, f"{p.name}/ folder"  # the scene (or photo collection) holds it
+    if (
+        p.parent.name == "sparse"
+        and (p / "cameras.bin").is_file()
+        or (p.parent.name == "sparse" and (p / "cameras.txt").is_file())
+    ):
+        up = p.parent.parent
+        root = up.parent if up.name == "dense" else up
+        return root, f"COLMAP model {p.relative_to(root)}/"
+    return None
+
+
 def scene_source(
     scene_name: str | None, data: Path | None
 ) -> tuple[str, Path, Path | None]:
@@ -646,6 +672,14 @@ def scene_source(
         scene_name, data = _scene_name(scene_name, data)
     if data is None:
         data = Path(os.environ.get("PTOVS_DATA", "data")) / scene_name
+    part = scene_part(Path(data))
+    if part is not None:
+        root, what = part
+        shown = os.path.relpath(root) if not Path(data).is_absolute() else str(root)
+        raise InputError(
+            f"--data {data} is the {what} of the scene folder {shown}, not a scene: "
+            f"pass --data {shown}" + (f" --scene {scene_name}" if scene_name else "")
+        )
     if scene_name is None:
         scene_name = Path(data).resolve().name
     if not Path(data).is_dir():

@@ -75,9 +75,48 @@ def detect_layout(root: Path) -> Layout:
     return Layout(kind, images_dir, sparse_dir)
 
 
+def count_registered(model: Path, ext: str) -> int:
+    """How many images a COLMAP model registers (its images file's count)."""
+    path = model / f"images.{ext}"
+    try:
+        if ext == "bin":
+            with path.open("rb") as fh:
+                head = fh.read(8)
+            return int.from_bytes(head, "little") if len(head) == 8 else 0
+        lines = [ln for ln in path.read_text().splitlines() if not ln.startswith("#")]
+        return len(lines) // 2
+    except OSError:
+        return 0
+
+
+def _best_model(sparse_dir: Path) -> Path | None:
+    """Of several models sparse/0, sparse/1, ..., the one that registers the most
+    images (COLMAP's mapper numbers them by when they were made, not by size)."""
+    models = []
+    for d in sorted(p for p in sparse_dir.iterdir() if p.is_dir()):
+        for ext in ("bin", "txt"):
+            if (d / f"cameras.{ext}").is_file():
+                models.append((count_registered(d, ext), d))
+                break
+    if len(models) < 2:
+        return None
+    n, best = max(models, key=lambda m: (m[0], -models.index(m)))
+    logger.warning(
+        "%s holds %d models (%s); using %s, which registers the most images",
+        sparse_dir,
+        len(models),
+        ", ".join(f"{d.name}: {k} images" for k, d in models),
+        best.name,
+    )
+    return best
+
+
 def find_model(sparse_dir: Path) -> tuple[Path, str]:
-    """The folder holding the model and its format ("bin" or "txt")."""
-    for d in (sparse_dir, sparse_dir / "0"):
+    """The folder holding the model and its format ("bin" or "txt"): sparse/
+    itself, else the numbered model that registers the most images."""
+    direct = any((sparse_dir / f"cameras.{e}").is_file() for e in ("bin", "txt"))
+    best = None if direct or not sparse_dir.is_dir() else _best_model(sparse_dir)
+    for d in (sparse_dir, best or sparse_dir / "0"):
         for ext in ("bin", "txt"):
             if (d / f"cameras.{ext}").is_file():
                 missing = [
@@ -90,15 +129,6 @@ def find_model(sparse_dir: Path) -> tuple[Path, str]:
                         f"incomplete COLMAP model in {d}: missing "
                         f"{', '.join(str(m) for m in missing)}; a model needs "
                         f"cameras, images and points3D (.{ext})"
-                    )
-                others = sorted(
-                    p.name for p in sparse_dir.iterdir() if p.is_dir() and p.name != "0"
-                )
-                if d != sparse_dir and others:
-                    logger.warning(
-                        "%s holds several models; using 0 and ignoring %s",
-                        sparse_dir,
-                        others,
                     )
                 return d, ext
     raise MissingInputError(
