@@ -151,19 +151,24 @@ def get_stage(name: str) -> StageSpec:
     return REGISTRY[name]
 
 
+def did_you_mean(name: str, choices: Iterable[str], fmt: str = "{!r}") -> str:
+    """ " (did you mean X?)" for the nearest of `choices`, or ""."""
+    import difflib
+
+    near = difflib.get_close_matches(name, list(choices), n=1)
+    return f" (did you mean {fmt.format(near[0])}?)" if near else ""
+
+
 def check_config(config: Mapping[str, Any], origin: str = "the config") -> None:
     """Every section and key of a merged config (`--config` file plus the group's
     `--set` items), checked before anything runs: an unknown section or key, or a
     value of the wrong type, is an InputError with the nearest valid name."""
-    import difflib
-
     sections = list(dict.fromkeys([SCENE, *STAGE_MODULES, *REGISTRY]))
     for name, section in config.items():
         if name not in sections:
-            near = difflib.get_close_matches(name, sections, n=1)
             raise InputError(
                 f"{origin}: unknown section [{name}]"
-                + (f" (did you mean [{near[0]}]?)" if near else "")
+                + did_you_mean(name, sections, "[{}]")
                 + f"; sections: {', '.join(sections)}"
             )
         if not isinstance(section, Mapping):
@@ -179,10 +184,9 @@ def check_config(config: Mapping[str, Any], origin: str = "the config") -> None:
         keys = [f.name for f in dataclasses.fields(cls)]
         for key in section:
             if key not in keys:
-                near = difflib.get_close_matches(key, keys, n=1)
                 raise InputError(
                     f"{origin}: [{name}] has no key {key!r}"
-                    + (f" (did you mean {near[0]!r}?)" if near else "")
+                    + did_you_mean(key, keys)
                     + f"; valid keys: {', '.join(sorted(keys))}"
                 )
         build_config(cls, section, name)  # the values' types
@@ -527,16 +531,10 @@ def split_sets(
         if not dot:
             section, rest = default or "", key
         if not eq or not rest.strip() or section not in out:
-            import difflib
-
-            near = difflib.get_close_matches(section, allowed, n=1) if dot else []
+            near = did_you_mean(section, allowed) if dot else ""
             raise click.UsageError(
                 f"--set {item!r}: "
-                + (
-                    f"no stage {section!r} (did you mean {near[0]!r}?); "
-                    if near
-                    else ""
-                )
+                + (f"no stage {section!r}{near}; " if near else "")
                 + "write STAGE.KEY=VALUE with STAGE one of "
                 f"{', '.join(allowed)} (e.g. --set extract-features.segmenter=graph)"
                 + (f", or KEY=VALUE for [{default}]" if default else "")
