@@ -158,3 +158,12 @@ def test_several_models_use_the_one_with_most_images(tmp_path: Path, caplog):
     (sparse / "1" / "images.txt").unlink()  # a broken model counts nothing
     (sparse / "1" / "cameras.txt").unlink()
     assert find_model(sparse) == (sparse / "2", "txt")
+
+
+def test_a_misspelt_command_is_told_the_nearest_even_a_lazy_one():
+    for typo, near in (("reconstuct", "reconstruct"), ("qurey", "query"),
+                       ("synth-scen", "synth-scene"), ("sttus", "status")):  # fmt: skip
+        r = CliRunner().invoke(cli, [typo])
+        assert r.exit_code == 2 and f"did you mean {near!r}" in r.output, r.output
+    r = CliRunner().invoke(cli, ["zzzzzz"])
+    assert r.exit_code == 2 and "No such command" in r.output

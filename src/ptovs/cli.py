@@ -64,6 +64,27 @@ class LazyGroup(click.Group):
             return importlib.import_module(module).command
         return None
 
+    def resolve_command(self, ctx: click.Context, args: list[str]) -> tuple:
+        """A misspelt command is told the nearest one, stage and application
+        commands included (click's own suggestion sees only those imported)."""
+        try:
+            return super().resolve_command(ctx, args)
+        except click.UsageError:
+            name = args[0] if args else ""
+            if (
+                name
+                and not name.startswith("-")
+                and name not in self.list_commands(ctx)
+            ):
+                from ptovs.stage import did_you_mean
+
+                hint = did_you_mean(name, self.list_commands(ctx))
+                if hint:
+                    raise click.UsageError(
+                        f"No such command {name!r}{hint}", ctx
+                    ) from None
+            raise
+
     def invoke(self, ctx: click.Context) -> object:
         """Errors a user can cause become one-line messages (exit 1); `-vv` shows
         the traceback as well."""
