@@ -167,3 +167,19 @@ def test_a_misspelt_command_is_told_the_nearest_even_a_lazy_one():
         assert r.exit_code == 2 and f"did you mean {near!r}" in r.output, r.output
     r = CliRunner().invoke(cli, ["zzzzzz"])
     assert r.exit_code == 2 and "No such command" in r.output
+
+
+def test_global_flags_work_after_the_subcommand(tiny_scene_dir: Path, tmp_path: Path):
+    from ptovs.cli import hoist_global_flags
+
+    assert hoist_global_flags(["query", "Wall", "-vv", "--threads", "2", "--", "-q"]) == [
+        "-vv", "--threads", "2", "query", "Wall", "--", "-q"]  # fmt: skip
+    assert hoist_global_flags(["--config", "c.toml", "status", "--data", "d"]) == [
+        "--config", "c.toml", "status", "--data", "d"]  # fmt: skip
+    work = str(tmp_path / "w")
+    before = CliRunner().invoke(cli, ["--work-dir", work, "-q", "--threads", "1",
+                                      "status", "--data", str(tiny_scene_dir)])  # fmt: skip
+    after = CliRunner().invoke(cli, ["--work-dir", work, "status", "--data",
+                                     str(tiny_scene_dir), "-q", "--threads", "1"])  # fmt: skip
+    assert before.exit_code == after.exit_code == 0, after.output
+    assert before.output == after.output

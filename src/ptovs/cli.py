@@ -43,8 +43,50 @@ def _openmp_defaults() -> None:
 _openmp_defaults()
 
 
+# the group's options that take a value (to find where the subcommand starts)
+_GROUP_VALUED = ("--work-dir", "--config", "--set", "--threads")
+
+
+def hoist_global_flags(args: list[str]) -> list[str]:
+    """-v/-q/--threads N given after the subcommand, moved before it, so that they
+    work on either side (no subcommand has options of those names). Tokens after
+    `--` stay where they are."""
+    args = list(args)
+    i = 0
+    while i < len(args) and args[i].startswith("-") and args[i] != "--":
+        i += 2 if args[i] in _GROUP_VALUED else 1
+    if i >= len(args) or args[i] == "--":
+        return args
+    head, sub, rest = args[:i], args[i], args[i + 1 :]
+    moved, kept, j = [], [], 0
+    while j < len(rest):
+        tok = rest[j]
+        if tok == "--":
+            kept += rest[j:]
+            break
+        if tok in ("--verbose", "--quiet") or (
+            len(tok) > 1
+            and tok[0] == "-"
+            and set(tok[1:]) <= {"v"} | {"q"}
+            and len(set(tok[1:])) == 1
+        ):
+            moved.append(tok)
+        elif tok == "--threads" and j + 1 < len(rest):
+            moved += [tok, rest[j + 1]]
+            j += 1
+        elif tok.startswith("--threads="):
+            moved.append(tok)
+        else:
+            kept.append(tok)
+        j += 1
+    return [*head, *moved, sub, *kept]
+
+
 class LazyGroup(click.Group):
     """Lists stage and application commands without importing their modules."""
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        return super().parse_args(ctx, hoist_global_flags(args))
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         from ptovs.apps import APP_MODULES
