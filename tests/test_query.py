@@ -407,3 +407,30 @@ def test_an_unqueried_label_category_names_its_label_file(queried):
     assert res.exit_code == 1 and isinstance(res.exception, SystemExit), res.output
     line = next(ln for ln in res.output.splitlines() if ln.startswith("Error:"))
     assert "was not queried" in line and ".json" in line and "Brick Facade" in line
+
+
+def test_query_embeds_texts_with_the_features_encoder():
+    """One place for the language model: query follows the encoder recorded with
+    the features unless told otherwise, and refuses an override that cannot match."""
+    from types import SimpleNamespace
+
+    from ptovs.errors import InputError
+    from ptovs.field.query import QueryConfig, resolve_text_encoder
+
+    real, synth = SimpleNamespace(synthetic=False), SimpleNamespace(synthetic=True)
+    rec = {"name": "openclip", "model": "ViT-L-14", "checkpoint": "ckpt/l14.pt"}
+    got = resolve_text_encoder(QueryConfig(), real, rec)
+    assert got == {"name": "openclip", "model": "ViT-L-14", "checkpoint": "ckpt/l14.pt"}
+    assert resolve_text_encoder(QueryConfig(clip_model="ViT-L-14"), real, rec) == got
+    for bad, msg in ((QueryConfig(clip_model="ViT-B-16"), "clip_model"),
+                     (QueryConfig(clip_checkpoint="other.pt"), "clip_checkpoint"),
+                     (QueryConfig(encoder="synthetic"), "query.encoder")):  # fmt: skip
+        with pytest.raises(InputError, match=msg):
+            resolve_text_encoder(bad, real, rec)
+    # no record (features made before it existed): the old rule
+    assert resolve_text_encoder(QueryConfig(), synth, None)["name"] == "synthetic"
+    old = resolve_text_encoder(QueryConfig(), real, None)
+    assert old == {"name": "openclip", "model": "ViT-B-16", "checkpoint": ""}
+    # the stand-in's versions are one family
+    v2 = resolve_text_encoder(QueryConfig(), synth, {"name": "synthetic-v2"})
+    assert v2["name"] == "synthetic"

@@ -76,10 +76,13 @@ class QueryConfig:
     decode: Literal["table", "exact"] = "table"
     table_size: int = 64
     encoder: Literal["auto", "synthetic", "openclip"] = "auto"
-    """Text encoder: "auto" = the stand-in on synthetic scenes, OpenCLIP elsewhere
-    (it must be the one extract-features used)."""
-    clip_model: str = "ViT-B-16"
+    """Text encoder: "auto" = the one extract-features made the features with
+    (recorded in them; before that record: the stand-in on synthetic scenes,
+    OpenCLIP elsewhere). One that cannot match the features is refused."""
+    clip_model: str = ""
+    """OpenCLIP model ("" = the features'; else it must equal theirs)."""
     clip_checkpoint: str = ""
+    """OpenCLIP checkpoint ("" = the features'; else it must equal theirs)."""
     device: str = "cpu"
     backend: str = "auto"
 
@@ -143,15 +146,53 @@ def encoder_name(config: QueryConfig, scene: Any) -> str:
     return config.encoder
 
 
-def text_encoder(config: QueryConfig, scene: Any) -> Encoder:
-    if encoder_name(config, scene) == "synthetic":
+def resolve_text_encoder(
+    config: QueryConfig, scene: Any, recorded: dict | None
+) -> dict:
+    """{"name", "model", "checkpoint"} of the text encoder query uses: the one
+    the features were made with (`recorded`, from extract-features through
+    train-ae), where the [query] section leaves it open; an explicit choice that
+    differs from the record is an InputError (texts and features would live in
+    different spaces, and every mask would be noise)."""
+    rec = recorded or {}
+    family = None
+    if rec.get("name"):
+        family = "openclip" if rec["name"] == "openclip" else "synthetic"
+    name = family or encoder_name(config, scene)
+    if config.encoder != "auto" and family and config.encoder != family:
+        raise InputError(
+            f"query.encoder = {config.encoder!r}, but the features were made with "
+            f'{rec["name"]!r}; leave query.encoder at "auto" (it follows them) or '
+            "rerun extract-features with that encoder"
+        )
+    out = {"name": name, "model": "", "checkpoint": ""}
+    if name == "openclip":
+        for key, given in (("model", config.clip_model),
+                           ("checkpoint", config.clip_checkpoint)):  # fmt: skip
+            was = rec.get(key) or ""
+            if given and was and given != was:
+                raise InputError(
+                    f"query.clip_{key} = {given!r}, but the features were made with "
+                    f"{was!r} (extract-features.clip_{key}); leave query.clip_{key} "
+                    "empty: query follows the features"
+                )
+            out[key] = given or was
+        out["model"] = out["model"] or "ViT-B-16"
+    return out
+
+
+def text_encoder(
+    config: QueryConfig, scene: Any, recorded: dict | None = None
+) -> Encoder:
+    spec = resolve_text_encoder(config, scene, recorded)
+    if spec["name"] == "synthetic":
         from ptovs.encoders.synthetic import SyntheticEncoder
 
         return SyntheticEncoder.from_scene(scene.root)
     return get_encoder(
         "openclip",
-        model=config.clip_model,
-        checkpoint=config.clip_checkpoint,
+        model=spec["model"],
+        checkpoint=spec["checkpoint"],
         device=config.device,
     )
 
@@ -236,7 +277,8 @@ class Querier:
                 f"query: train-male holds {len(codes)} Gaussians, reconstruct "
                 f"{len(self.gaussians)}; rerun train-male"
             )
-        encoder = text_encoder(config, inputs.scene)
+        ae_meta = read_json_dataset(inputs.ae.root()["meta_json"])
+        encoder = text_encoder(config, inputs.scene, ae_meta.get("encoder_spec"))
         phrases = list(
             dict.fromkeys([*queries, *config.canonical, *BACKGROUND_PHRASES])
         )

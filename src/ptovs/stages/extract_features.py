@@ -143,6 +143,18 @@ def _vocabulary(scene_root: Path | None) -> Path | None:
     return path if path is not None and path.is_file() else None
 
 
+def encoder_spec(config: Config, encoder: Encoder) -> dict:
+    """What query needs to embed texts in the features' space: the encoder's
+    name, and for OpenCLIP the model and checkpoint (recorded in levels_json)."""
+    if encoder.name == "openclip":
+        return {
+            "name": "openclip",
+            "model": config.clip_model,
+            "checkpoint": str(config.clip_checkpoint),
+        }
+    return {"name": encoder.name}
+
+
 def build_encoder(
     config: Config, synthetic: bool, scene_root: Path | None = None
 ) -> Encoder:
@@ -247,6 +259,9 @@ def run(
                     "apps": apps,
                     "segmenter": "import" if importing else config.segmenter,
                     "encoder": "import" if importing else encoder.name,
+                    "encoder_spec": None
+                    if importing
+                    else encoder_spec(config, encoder),
                 }
             )
         },
@@ -281,6 +296,7 @@ __all__ = [
     "Config",
     "Inputs",
     "build_encoder",
+    "encoder_spec",
     "build_segmenter",
     "command",
     "encode_levels",

@@ -415,7 +415,12 @@ def run(
     root: dict = {f"net.{k}": v.numpy() for k, v in model.state_dict().items()}
     root["metrics_json"] = json_dataset(metrics)
     root["meta_json"] = json_dataset(
-        {"apps": apps, "levels": meta["levels"], "code_dim": model.code_dim}
+        {
+            "apps": apps,
+            "levels": meta["levels"],
+            "code_dim": model.code_dim,
+            "encoder_spec": meta.get("encoder_spec"),  # query embeds texts with it
+        }
     )
     for k, v in hist.items():
         root[f"log_{k}"] = np.asarray(v, np.float64)
