@@ -616,6 +616,26 @@ READ_ONLY: contextvars.ContextVar[bool] = contextvars.ContextVar(
 )
 
 
+_PENDING: dict[Path, dict] = {}  # fingerprint caches computed while read-only
+
+
+def _write_fingerprints(cache: Path, memo: dict) -> None:
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_file(cache, keep_suffix=False) as tmp:
+        tmp.write_text(json.dumps(memo))
+
+
+def flush_fingerprints(write: bool = True) -> None:
+    """Write (or, `write=False`, drop) the fingerprint caches computed while
+    read-only: a preflight that passes keeps its hashing, one that fails leaves
+    the work dir as it was."""
+    pending = dict(_PENDING)
+    _PENDING.clear()
+    if write:
+        for cache, memo in pending.items():
+            _write_fingerprints(cache, memo)
+
+
 def fingerprint_files(files: Iterable[Path], root: Path, cache: Path | None) -> str:
     """sha256 over (relative path, content sha256) of every file.
 
@@ -648,8 +668,9 @@ def fingerprint_files(files: Iterable[Path], root: Path, cache: Path | None) -> 
             memo[str(path)] = [st.st_size, st.st_mtime_ns, digest]
             changed = True
         records.append(f"{rel}:{digest}")
-    if cache is not None and changed and not READ_ONLY.get():
-        cache.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_file(cache, keep_suffix=False) as tmp:
-            tmp.write_text(json.dumps(memo))
+    if cache is not None and changed:
+        if READ_ONLY.get():
+            _PENDING[cache] = memo  # written by flush_fingerprints, if ever
+        else:
+            _write_fingerprints(cache, memo)
     return hashlib.sha256("\n".join(records).encode()).hexdigest()

@@ -582,8 +582,16 @@ def chain_options(
     return wrap
 
 
-def run_stages(chain: Chain, stages: Iterable[str], force: Iterable[str] = ()) -> None:
-    """Run stages in order (cached ones return at once), one line per stage."""
+def run_stages(
+    chain: Chain, stages: Iterable[str], force: Iterable[str] = (), check: bool = True
+) -> None:
+    """Run stages in order (cached ones return at once), one line per stage; first
+    the preflight checks of those that will run (`ptovs.preflight`)."""
+    stages = list(stages)
+    if check:
+        from ptovs.preflight import preflight
+
+        preflight(chain, stages)
     redo_set = set(force)
     for stage in stages:
         redo = stage in redo_set or chain.ctx.force
@@ -810,9 +818,12 @@ def stage_command(
                 chain, ref = variant_chain(
                     ctx, scene_name, data, variant, sets, default=name
                 )
+                from ptovs.preflight import preflight
+
+                preflight(chain, chain.closure(name) if extras.upstream else [name])
                 if extras.upstream:
                     before = [s for s in chain.closure(name) if s != name]
-                    run_stages(chain, before, redo)
+                    run_stages(chain, before, redo, check=False)
                 arts[variant] = execute(chain, name, force=name in redo or obj.force)
             if extras.report is None:
                 click.echo(f"{name}: {arts[variants[0]].path}")

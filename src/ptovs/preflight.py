@@ -1,0 +1,141 @@
+"""Checks that run before the first stage of a chain (issue 42): a mistake that
+would fail hours in (a missing or mismatched checkpoint, a phrase the encoder does
+not know, a view that does not exist, a label file that does not parse) fails in
+seconds instead, as one line naming the file and the fix, and leaves nothing
+behind: no stage has started, so no `.parts`, `.lock` or artifact exists.
+
+Only the stages that will run are checked (a cached stage needs nothing).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from pathlib import Path
+from typing import Any
+
+from ptovs.errors import InputError, MissingInputError
+
+log = logging.getLogger(__name__)
+
+
+@functools.lru_cache(maxsize=8)
+def _openclip_fits(model: str, path: str, size: int, mtime_ns: int) -> None:
+    """Load the checkpoint the way the encoder will and compare it with the model's
+    tensors, names and shapes (cached by the file's size and time)."""
+    from ptovs.compat import import_backend
+    from ptovs.encoders.openclip import _state_dict
+
+    oc = import_backend("open_clip")
+    if model not in oc.list_models():
+        raise InputError(
+            f"clip_model {model!r} is not an OpenCLIP model (e.g. ViT-B-16, ViT-L-14)"
+        )
+    try:
+        state = _state_dict(Path(path))
+    except Exception as exc:  # a torch/pickle error: one line, naming the file
+        raise InputError(
+            f"clip_checkpoint {path} could not be read as a state dict "
+            f"({type(exc).__name__}: {str(exc).splitlines()[0][:160]})"
+        ) from None
+    want = oc.create_model(model, pretrained=None).state_dict()
+    missing = [k for k in want if k not in state]
+    wrong = [
+        k for k in want if k in state and tuple(state[k].shape) != tuple(want[k].shape)
+    ]
+    if missing or wrong:
+        what = wrong[:2] or missing[:2]
+        raise InputError(
+            f"clip_checkpoint {path} is not a {model} state dict: {len(missing)} "
+            f"tensors missing, {len(wrong)} of another shape (e.g. {what}); give "
+            f"{model}'s checkpoint, or set clip_model to the checkpoint's model"
+        )
+
+
+def check_openclip(model: str, checkpoint: str | Path) -> None:
+    """The OpenCLIP checkpoint exists, loads and fits `model`."""
+    if not str(checkpoint):
+        raise InputError(
+            "encoder = 'openclip' needs clip_checkpoint = a local OpenCLIP state dict "
+            "(the paper: ViT-B-16 laion2b_s34b_b88k); nothing is downloaded: "
+            "--set extract-features.clip_checkpoint=FILE"
+        )
+    path = Path(checkpoint).expanduser()
+    if not path.is_file():
+        raise MissingInputError(
+            f"clip_checkpoint {path} does not exist; give the local OpenCLIP state "
+            "dict with --set extract-features.clip_checkpoint=FILE"
+        )
+    st = path.stat()
+    _openclip_fits(model, str(path), st.st_size, st.st_mtime_ns)
+
+
+def _extract(config: Any, scene: Any) -> None:
+    if config.import_dir:
+        if not Path(config.import_dir).is_dir():
+            raise MissingInputError(
+                f"extract-features.import_dir {config.import_dir} is not a folder"
+            )
+        return
+    name = config.encoder
+    if name == "auto":
+        name = "synthetic" if scene.synthetic else "openclip"
+    if name == "openclip":
+        check_openclip(config.clip_model, config.clip_checkpoint)
+    elif not (Path(scene.root) / "synthetic" / "vocabulary.json").is_file():
+        raise MissingInputError(
+            f"encoder 'synthetic' (the stand-in) needs {scene.root}/synthetic/"
+            "vocabulary.json, which only synthetic scenes have; set "
+            'extract-features.encoder = "openclip" and clip_checkpoint for real photos'
+        )
+    if config.segmenter == "sam":
+        ckpt = Path(str(config.sam_checkpoint)).expanduser()
+        if not str(config.sam_checkpoint) or not ckpt.is_file():
+            raise MissingInputError(
+                f"segmenter = 'sam' needs sam_checkpoint = a local SAM checkpoint "
+                f"({str(ckpt) if str(config.sam_checkpoint) else 'none given'}); "
+                "--set extract-features.sam_checkpoint=FILE"
+            )
+
+
+def _query(config: Any, scene: Any) -> None:
+    from ptovs.field.query import encoder_name, resolve_queries, resolve_views
+
+    queries = resolve_queries(config, scene)  # parses the labels when no texts
+    resolve_views(config, scene)
+    if encoder_name(config, scene) == "synthetic" and scene.synthetic:
+        from ptovs.encoders.synthetic import SyntheticEncoder
+        from ptovs.field.query import check_vocabulary
+
+        check_vocabulary(SyntheticEncoder.from_scene(scene.root), queries)
+
+
+def preflight(chain: Any, stages: list[str]) -> None:
+    """Check what `stages` (those not yet done) will need, before any runs.
+    Nothing is written unless every check passes (not even the photos'
+    fingerprint cache)."""
+    from ptovs.artifacts import READ_ONLY, flush_fingerprints
+
+    token = READ_ONLY.set(True)
+    ok = False
+    try:
+        _preflight(chain, stages)
+        ok = True
+    finally:
+        READ_ONLY.reset(token)
+        flush_fingerprints(write=ok)
+
+
+def _preflight(chain: Any, stages: list[str]) -> None:
+    todo = [s for s in stages if chain.state(s)[0] != "done"]
+    if not todo:
+        return
+    scene = chain.scene.load()
+    if "extract-features" in todo:
+        _extract(chain.config("extract-features"), scene)
+    if "query" in todo:
+        _query(chain.config("query"), scene)
+    log.debug("preflight: %s checked", ", ".join(todo))
+
+
+__all__ = ["check_openclip", "preflight"]
