@@ -70,3 +70,21 @@ def test_phrases_views_and_labels_are_checked_first(tiny_scene_dir: Path, tmp_pa
         assert r.exit_code == 1 and says in r.output, (args, r.output)
         assert "Traceback" not in r.output
         assert not work.exists(), args  # not a fingerprint, lock or part file
+
+
+def test_unposed_photos_are_checked_before_sfm_poses_them(tiny_scene_dir, tmp_path):
+    """A folder of photos: what the features will need is checked before SfM's
+    minutes, and a failure writes nothing (not even SfM's lock)."""
+    import shutil
+
+    photos = tmp_path / "myphotos"
+    photos.mkdir()
+    for p in sorted((tiny_scene_dir / "dense" / "images").glob("*.jpg"))[:3]:
+        shutil.copy(p, photos / p.name)
+    work = tmp_path / "work"
+    r = _run(work, "extract", "--data", str(photos))
+    assert r.exit_code == 1 and "clip_checkpoint" in r.output, r.output
+    r = _run(work, "train", "--data", str(photos), "--set",
+             f"extract-features.clip_checkpoint={tmp_path / 'nope.pt'}")  # fmt: skip
+    assert r.exit_code == 1 and "nope.pt" in r.output, r.output
+    assert not work.exists()

@@ -420,7 +420,7 @@ def extract(
     resumable on its own: a second `ptovs extract` does nothing, and a killed one
     resumes in the stage (and at the view) where it stopped. Needs reconstruct.
     """
-    chain, _ = variant_chain(obj, scene_name, data, "male", sets)
+    chain, _ = variant_chain(obj, scene_name, data, "male", sets, until="uncertainty")
     run_stages(chain, EXTRACT_STAGES, EXTRACT_STAGES if force else ())
 
 
@@ -442,7 +442,7 @@ def train(
     variant needs that has not run yet (reconstruct, extract-features, ...) runs
     first, so `--variant langsplat` builds its plain-3DGS geometry itself.
     """
-    chain, _ = variant_chain(obj, scene_name, data, variant, sets)
+    chain, _ = variant_chain(obj, scene_name, data, variant, sets, until="train-male")
     run_stages(chain, chain.closure("train-male"), TRAIN_STAGES if force else ())
 
 

@@ -70,7 +70,10 @@ def check_openclip(model: str, checkpoint: str | Path) -> None:
     _openclip_fits(model, str(path), st.st_size, st.st_mtime_ns)
 
 
-def _extract(config: Any, scene: Any) -> None:
+def check_extract_config(config: Any, synthetic: bool = False) -> None:
+    """What extract-features needs that no scene decides: the encoder's and the
+    segmenter's checkpoints (a folder of unposed photos is never synthetic, so
+    this runs before SfM poses it)."""
     if config.import_dir:
         if not Path(config.import_dir).is_dir():
             raise MissingInputError(
@@ -79,15 +82,9 @@ def _extract(config: Any, scene: Any) -> None:
         return
     name = config.encoder
     if name == "auto":
-        name = "synthetic" if scene.synthetic else "openclip"
+        name = "synthetic" if synthetic else "openclip"
     if name == "openclip":
         check_openclip(config.clip_model, config.clip_checkpoint)
-    elif not (Path(scene.root) / "synthetic" / "vocabulary.json").is_file():
-        raise MissingInputError(
-            f"encoder 'synthetic' (the stand-in) needs {scene.root}/synthetic/"
-            "vocabulary.json, which only synthetic scenes have; set "
-            'extract-features.encoder = "openclip" and clip_checkpoint for real photos'
-        )
     if config.segmenter == "sam":
         ckpt = Path(str(config.sam_checkpoint)).expanduser()
         if not str(config.sam_checkpoint) or not ckpt.is_file():
@@ -96,6 +93,21 @@ def _extract(config: Any, scene: Any) -> None:
                 f"({str(ckpt) if str(config.sam_checkpoint) else 'none given'}); "
                 "--set extract-features.sam_checkpoint=FILE"
             )
+
+
+def _extract(config: Any, scene: Any) -> None:
+    check_extract_config(config, scene.synthetic)
+    name = config.encoder
+    if name == "auto":
+        name = "synthetic" if scene.synthetic else "openclip"
+    if config.import_dir or name == "openclip":
+        return
+    if not (Path(scene.root) / "synthetic" / "vocabulary.json").is_file():
+        raise MissingInputError(
+            f"encoder 'synthetic' (the stand-in) needs {scene.root}/synthetic/"
+            "vocabulary.json, which only synthetic scenes have; set "
+            'extract-features.encoder = "openclip" and clip_checkpoint for real photos'
+        )
 
 
 def _query(config: Any, scene: Any) -> None:
@@ -138,4 +150,4 @@ def _preflight(chain: Any, stages: list[str]) -> None:
     log.debug("preflight: %s checked", ", ".join(todo))
 
 
-__all__ = ["check_openclip", "preflight"]
+__all__ = ["check_extract_config", "check_openclip", "preflight"]

@@ -612,13 +612,28 @@ def variant_chain(
     variant: str,
     sets: Iterable[str],
     default: str | None = None,
+    until: str | None = None,
 ) -> tuple[Chain, SceneRef]:
     """The chain of a recipe (`ptovs.variants`) for a scene, with the command's
-    `--set` items (SECTION.KEY=VALUE; KEY=VALUE for `default`'s section)."""
+    `--set` items (SECTION.KEY=VALUE; KEY=VALUE for `default`'s section). `until`
+    (the last stage the command will run, default `default`) decides what a folder
+    of unposed photos is checked for before SfM poses it."""
     from ptovs.variants import variant_sets
 
     split = split_sets(sets, (*PIPELINE, *REGISTRY, SCENE), default)
-    ref = resolve_scene(ctx, scene_name, data, split.pop(SCENE))
+    last = until or default
+    extract = "extract-features"
+    needs = last in PIPELINE and PIPELINE.index(last) >= PIPELINE.index(extract)
+
+    def before_sfm() -> None:  # what the features will need, before SfM's minutes
+        if needs:
+            from ptovs.preflight import check_extract_config
+
+            section = ctx.section(extract, split.get(extract, ()))
+            check_extract_config(build_config(get_stage(extract).config_cls,
+                                              section, extract))  # fmt: skip
+
+    ref = resolve_scene(ctx, scene_name, data, split.pop(SCENE), before_sfm)
     return Chain(ctx, ref, variant_sets(variant, split)), ref
 
 
@@ -718,11 +733,23 @@ def resolve_scene(
     scene_name: str | None,
     data: Path | None,
     sets: Iterable[str] = (),
+    before_sfm: Callable[[], None] | None = None,
 ) -> SceneRef:
     """The scene a command works on. A folder of unposed photos is posed first by
-    the `sfm` stage (cached)."""
+    the `sfm` stage (cached); `before_sfm` runs first when SfM has still to run
+    (the command's preflight checks that need no scene)."""
     scene_name, data, photos = scene_source(scene_name, data)
     if photos is not None:  # unposed photos: SfM first (cached), then a COLMAP scene
+        if before_sfm is not None:
+            from ptovs.artifacts import READ_ONLY
+
+            token = READ_ONLY.set(True)  # the state lookup writes no cache
+            try:
+                state = pose_photos(ctx, scene_name, photos, run=False)[1]
+            finally:
+                READ_ONLY.reset(token)
+            if state != "done":
+                before_sfm()
         data = pose_photos(ctx, scene_name, photos, run=True)[2]
     section = ctx.section("scene", sets)
     config = build_config(SceneConfig, section, "scene")

@@ -38,7 +38,7 @@ def trained_chain(
     """
     from ptovs.stage import run_stages, variant_chain
 
-    chain, ref = variant_chain(obj, scene_name, data, variant, sets)
+    chain, ref = variant_chain(obj, scene_name, data, variant, sets, until="train-male")
     run_stages(chain, chain.closure("train-male"))
     return chain, ref
 

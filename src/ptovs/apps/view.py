@@ -337,7 +337,7 @@ def ready_chain(obj: RunContext, scene_name, data, variant, sets):
     (the viewer never trains: that takes minutes)."""
     from ptovs.stage import variant_chain
 
-    chain, ref = variant_chain(obj, scene_name, data, variant, sets)
+    chain, ref = variant_chain(obj, scene_name, data, variant, sets, until="train-male")
     for stage in chain.closure("train-male"):
         state, _ = chain.state(stage)
         if state != "done":
