@@ -25,8 +25,8 @@ FORBIDDEN = (
     "SYNTHETIC" + ".md",
     "CLIP_" + "ROBUSTNESS",
     "STYLE" + ".md",
-    "../" + "shared",
-    "shared/data" + "/real",
+    "../" + "sha" + "red",
+    "sha" + "red/data" + "/real",
 )
 
 # Files the forbidden-name check skips: none.
