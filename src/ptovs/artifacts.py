@@ -619,6 +619,17 @@ READ_ONLY: contextvars.ContextVar[bool] = contextvars.ContextVar(
 _PENDING: dict[Path, dict] = {}  # fingerprint caches computed while read-only
 
 
+@contextlib.contextmanager
+def read_only() -> Iterator[None]:
+    """Within: nothing is written, the fingerprint cache included (it is kept in
+    memory until `flush_fingerprints`)."""
+    token = READ_ONLY.set(True)
+    try:
+        yield
+    finally:
+        READ_ONLY.reset(token)
+
+
 def _write_fingerprints(cache: Path, memo: dict) -> None:
     cache.parent.mkdir(parents=True, exist_ok=True)
     with atomic_file(cache, keep_suffix=False) as tmp:
@@ -649,6 +660,8 @@ def fingerprint_files(files: Iterable[Path], root: Path, cache: Path | None) -> 
             memo = json.loads(cache.read_text())
         except (OSError, ValueError):
             memo = {}
+    if cache is not None and cache in _PENDING:  # hashed earlier in this process
+        memo.update(_PENDING[cache])
     records, changed = [], False
     for path in sorted(Path(p).resolve() for p in files):
         st = path.stat()
@@ -668,9 +681,12 @@ def fingerprint_files(files: Iterable[Path], root: Path, cache: Path | None) -> 
             memo[str(path)] = [st.st_size, st.st_mtime_ns, digest]
             changed = True
         records.append(f"{rel}:{digest}")
+    if cache is not None and cache in _PENDING and not READ_ONLY.get():
+        changed = True  # hashed while read-only: now it may be written
     if cache is not None and changed:
         if READ_ONLY.get():
             _PENDING[cache] = memo  # written by flush_fingerprints, if ever
         else:
             _write_fingerprints(cache, memo)
+            _PENDING.pop(cache, None)
     return hashlib.sha256("\n".join(records).encode()).hexdigest()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib
 import logging
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -64,12 +65,7 @@ def hoist_global_flags(args: list[str]) -> list[str]:
         if tok == "--":
             kept += rest[j:]
             break
-        if tok in ("--verbose", "--quiet") or (
-            len(tok) > 1
-            and tok[0] == "-"
-            and set(tok[1:]) <= {"v"} | {"q"}
-            and len(set(tok[1:])) == 1
-        ):
+        if tok in ("--verbose", "--quiet") or re.fullmatch(r"-(v+|q+)", tok):
             moved.append(tok)
         elif tok == "--threads" and j + 1 < len(rest):
             moved += [tok, rest[j + 1]]
@@ -309,13 +305,10 @@ def status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:
     A folder of unposed photos first shows its `sfm` stage; status never runs it.
     It reads only: nothing is written, not even the photos' fingerprint cache.
     """
-    from ptovs.artifacts import READ_ONLY
+    from ptovs.artifacts import read_only
 
-    token = READ_ONLY.set(True)
-    try:
+    with read_only():
         _status(obj, scene_name, data)
-    finally:
-        READ_ONLY.reset(token)
 
 
 def _status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:

@@ -70,6 +70,13 @@ def check_openclip(model: str, checkpoint: str | Path) -> None:
     _openclip_fits(model, str(path), st.st_size, st.st_mtime_ns)
 
 
+def _encoder(config: Any, synthetic: bool) -> str:
+    """extract-features' encoder: "auto" is the stand-in on synthetic scenes."""
+    if config.encoder != "auto":
+        return config.encoder
+    return "synthetic" if synthetic else "openclip"
+
+
 def check_extract_config(config: Any, synthetic: bool = False) -> None:
     """What extract-features needs that no scene decides: the encoder's and the
     segmenter's checkpoints (a folder of unposed photos is never synthetic, so
@@ -80,10 +87,7 @@ def check_extract_config(config: Any, synthetic: bool = False) -> None:
                 f"extract-features.import_dir {config.import_dir} is not a folder"
             )
         return
-    name = config.encoder
-    if name == "auto":
-        name = "synthetic" if synthetic else "openclip"
-    if name == "openclip":
+    if _encoder(config, synthetic) == "openclip":
         check_openclip(config.clip_model, config.clip_checkpoint)
     if config.segmenter == "sam":
         ckpt = Path(str(config.sam_checkpoint)).expanduser()
@@ -97,10 +101,7 @@ def check_extract_config(config: Any, synthetic: bool = False) -> None:
 
 def _extract(config: Any, scene: Any) -> None:
     check_extract_config(config, scene.synthetic)
-    name = config.encoder
-    if name == "auto":
-        name = "synthetic" if scene.synthetic else "openclip"
-    if config.import_dir or name == "openclip":
+    if config.import_dir or _encoder(config, scene.synthetic) == "openclip":
         return
     if not (Path(scene.root) / "synthetic" / "vocabulary.json").is_file():
         raise MissingInputError(
@@ -126,15 +127,14 @@ def preflight(chain: Any, stages: list[str]) -> None:
     """Check what `stages` (those not yet done) will need, before any runs.
     Nothing is written unless every check passes (not even the photos'
     fingerprint cache)."""
-    from ptovs.artifacts import READ_ONLY, flush_fingerprints
+    from ptovs.artifacts import flush_fingerprints, read_only
 
-    token = READ_ONLY.set(True)
     ok = False
     try:
-        _preflight(chain, stages)
+        with read_only():
+            _preflight(chain, stages)
         ok = True
     finally:
-        READ_ONLY.reset(token)
         flush_fingerprints(write=ok)
 
 

@@ -672,10 +672,8 @@ def scene_part(path: Path) -> tuple[Path, str] | None:
         if up.name == "dense" and (up / "sparse").is_dir():
             return up.parent, f"dense/{p.name}/ folder"
         return up, f"{p.name}/ folder"  # the scene (or photo collection) holds it
-    if (
-        p.parent.name == "sparse"
-        and (p / "cameras.bin").is_file()
-        or (p.parent.name == "sparse" and (p / "cameras.txt").is_file())
+    if p.parent.name == "sparse" and any(
+        (p / f"cameras.{ext}").is_file() for ext in ("bin", "txt")
     ):
         up = p.parent.parent
         root = up.parent if up.name == "dense" else up
@@ -741,13 +739,10 @@ def resolve_scene(
     scene_name, data, photos = scene_source(scene_name, data)
     if photos is not None:  # unposed photos: SfM first (cached), then a COLMAP scene
         if before_sfm is not None:
-            from ptovs.artifacts import READ_ONLY
+            from ptovs.artifacts import read_only
 
-            token = READ_ONLY.set(True)  # the state lookup writes no cache
-            try:
+            with read_only():  # the state lookup writes no cache
                 state = pose_photos(ctx, scene_name, photos, run=False)[1]
-            finally:
-                READ_ONLY.reset(token)
             if state != "done":
                 before_sfm()
         data = pose_photos(ctx, scene_name, photos, run=True)[2]

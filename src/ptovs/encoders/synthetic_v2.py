@@ -204,26 +204,19 @@ def _one(crop: np.ndarray, floor: float) -> np.ndarray:
     Ln = (L - mu) / (sd + floor) * m
     out += list(_grid(Ln, m, 4))
     m8 = m.astype(np.uint8)
-    half = _R // 2
-    levels = {
-        1: (Ln.astype(np.float32), m, m8),
-        2: (
-            _area(Ln.astype(np.float32), half).astype(np.float32),
-            (_area(m.astype(np.float32), half) >= 0.5).astype(np.float64),
-            None,
-        ),
+    half_m = (_area(m.astype(np.float32), _R // 2) >= 0.5).astype(np.float64)
+    levels = {  # factor -> (luminance, mask) at that resolution
+        1: (Ln.astype(np.float32), m),
+        2: (_area(Ln.astype(np.float32), _R // 2).astype(np.float32), half_m),
     }
     energy = np.zeros((len(WAVELENGTHS), len(THETAS)))
     for i, lam in enumerate(WAVELENGTHS):
         f = _level(i)
-        img, ml, ml8 = levels[f]
-        if ml8 is None:
-            ml8 = ml.astype(np.uint8)
+        img, ml = levels[f]
         r = int(math.ceil(1.4 * lam)) if i < N_FINE else max(1, int(round(lam / 2)))
         r = max(1, int(round(r / f)))
-        mi = cv2.erode(ml8, np.ones((2 * r + 1, 2 * r + 1), np.uint8)).astype(
-            np.float64
-        )
+        kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+        mi = cv2.erode(ml.astype(np.uint8), kernel).astype(np.float64)
         if mi.sum() < 4:
             mi = ml
         si = mi.sum() + 1e-9

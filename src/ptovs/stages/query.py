@@ -206,10 +206,7 @@ def write_outputs(
                     overlay(photo, mask, text, rec["score"]),
                 )
                 rec.update(
-                    {
-                        k: str(base.with_name(f"{base.name}_{k}.png"))
-                        for k in ("mask", "heatmap", "overlay")
-                    }
+                    {k: str(base.with_name(f"{base.name}_{k}.png")) for k in PICTURES}
                 )
             records.append(rec)
     path = out / "results.json"
