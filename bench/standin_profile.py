@@ -15,6 +15,10 @@ Per seed, the world and cameras are the generator's plan (`plan_scene`, preset
   night        a random night appearance
   bw, sepia    the neutral daylight through the camera's film filter
   occluded     the neutral daylight with new billboards (rows by covered share)
+  piece        the crops the pipeline makes: segments of the clean photo (the
+               default segmenter, every level) that lie within one part, in rows
+               by the share of the part's pixels they show (`native-piece`: the
+               same at the preset's own photo size, against its `native` row)
   conflict     the neutral daylight with every part's texture moved to another
                part (a derangement): shape of one part, texture of another
 
@@ -80,6 +84,7 @@ PHOTO_ROWS = {  # photo-level degradations of the clean render (uint8 RGB)
     "jpeg-7": lambda im: _jpeg(im, 7),
 }
 APPEARANCE_ROWS = ("daylight", "night", "bw", "sepia")
+PIECE_BINS = ((0.0, 0.1), (0.1, 0.4), (0.4, 0.7), (0.7, 1.01))  # share of the part a piece shows
 OCCLUSION_BINS = ((0.1, 0.3), (0.3, 0.6))
 VIEW_BINS = ((0.0, 30.0), (30.0, 60.0), (60.0, 180.0))
 
@@ -142,6 +147,39 @@ def _azimuth(world, cam: Camera) -> float:
     return abs(math.degrees(math.atan2(d[0], -d[1])))
 
 
+@functools.lru_cache(maxsize=1)
+def _segmenter():
+    from ptovs.segment import get_segmenter
+
+    return get_segmenter("hier", levels=("s", "m", "l"))
+
+
+def pieces(image: np.ndarray, part_id: np.ndarray, need: int):
+    """The default segmenter's segments of a photo that lie within one part (at
+    least 80 % of their pixels on it, 70 % on some part): (part, share of the part's
+    pixels in the view that the segment shows, mask), every level."""
+    out = []
+    for level in _segmenter().segment(np.ascontiguousarray(image)):
+        for k in range(int(level.labels.max()) + 1):
+            m = level.mask(k)
+            under = part_id[m]
+            under = under[under >= 0]
+            if m.sum() < need or len(under) < 0.7 * m.sum():
+                continue
+            major = int(np.bincount(under).argmax())
+            if (under == major).mean() >= 0.8:
+                share = float((under == major).sum() / (part_id == major).sum())
+                out.append((major, share, m))
+    return out
+
+
+def _piece_row(prefix: str, share: float) -> str | None:
+    for lo, hi in PIECE_BINS:
+        if lo <= share < hi:
+            return f"{prefix}-{lo * 100:.0f}-{min(hi, 1.0) * 100:.0f}"
+    return None
+
+
 def encoder(version: int, world, preset: str = "small"):
     """The stand-in of `version` for a world, from its vocabulary as the generator
     writes it."""
@@ -175,12 +213,21 @@ def collect(
         if not parts:
             continue
         crops = {k: prepare_crop(clean.image, m) for k, m in parts}
+        known = {k for k, _ in parts}
+        for k, share, m in pieces(clean.image, clean.part_id, 30 * scale * scale):
+            row = _piece_row("piece", share)
+            if row and k in known:
+                add(row, ci, k, prepare_crop(clean.image, m))
         if scale != 1:  # the same parts at the instrument's own photo size
             rec1 = {"image_id": ci, **plan.cams[ci].to_dict()}
             small, _ = rerender(world, rec1, "neutral", "none", seed=seed)
             for k, _m in parts:
                 if (small.part_id == k).sum() >= 16:
                     add("native", ci, k, prepare_crop(small.image, small.part_id == k))
+            for k, share, m in pieces(small.image, small.part_id, 30):
+                row = _piece_row("native-piece", share)
+                if row and k in known:
+                    add(row, ci, k, prepare_crop(small.image, m))
         az = _azimuth(world, cam)
         crng = np.random.default_rng([seed, 42, ci])
         for k, c in crops.items():
@@ -247,6 +294,10 @@ def summarise(results: list[dict]) -> dict:
         rs = [r for res in results for r in res["rows"].get(name, [])]
         a = float(np.mean([r[2] == r[3] for r in rs])) if rs else float("nan")
         acc[name] = {"n": len(rs), "accuracy": a, "relative": a / base - 1.0}
+    if "native" in acc:  # the instrument's size: pieces against its whole parts
+        for name, row in acc.items():
+            if name.startswith("native-piece"):
+                row["relative_native"] = row["accuracy"] / acc["native"]["accuracy"] - 1
     conf = [r for res in results for r in res["rows"].get("conflict", [])]
     shape = sum(r[3] == r[2] for r in conf)
     texture = sum(r[3] == r[4] for r in conf)
