@@ -1,0 +1,318 @@
+"""Every stage's speed-up with the thread count (issue 43 item 5).
+
+The default chain, stage by stage, at 1, 2 and, on a machine with more cores, 4, 8
+and 16 threads:
+
+python bench/threads.py --preset small --seed 0 --threads 1 2 4 8 16 --work work/threads
+python bench/threads.py --preset tiny --threads 1 2 --set reconstruct.iterations=300 \
+    --timeout 800                                      # a short schedule, a wall budget
+
+The `--preset` scene of `--seed` is generated once under --data (kept and reused).
+Then, one thread count after the other (never two at once), every stage of the chain
+(src/ptovs/pipeline.py's PIPELINE) runs in order, each in its own process, exactly as
+`make all` runs it, in a work folder emptied first (<work>/t<N>: nothing is cached
+from another thread count):
+
+    OMP_NUM_THREADS=N python -m ptovs --work-dir <work>/t<N> --config <config> -q \
+        --threads N [--set STAGE.KEY=VALUE ...] <stage> --scene <name> --data <scene>
+
+A `--set` item goes to every stage's command (on the group, as a --config file's key
+would): a stage's key holds its upstreams' configs, so `reconstruct.iterations=300`
+given to reconstruct alone would leave render-appearances looking for the default
+reconstruct. Per stage: its wall time (the parent's clock around the process), the
+process's peak RSS (os.wait4's ru_maxrss: the stage and the processes it waited for;
+it also counts this small script's pages, ~20 MB, shared between fork and exec), its
+exit status and, when it failed, the tail of its stderr. A failed stage ends that
+thread count's chain; the next thread count runs. A thread count above os.cpu_count()
+is skipped (said so). `--timeout S` is a wall budget for the whole run: the stage
+running when it ends is killed (recorded with "timeout": true) and every stage after
+it is recorded as skipped. Logs: <work>/t<N>/logs/<stage>.{out,err}.
+
+Results: <work>/threads.json (written after every stage, so a killed run keeps what it
+measured; runs of other thread counts from an earlier run with the same preset, seed,
+--set items, config and CPU are kept), then a markdown table: a row a stage and the
+chain's total, per thread count its seconds and its speed-up over the smallest thread
+count measured; and the peak RSS a stage and thread count.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import ROOT, machine  # noqa: E402  (same folder)
+
+from ptovs.pipeline import PIPELINE  # noqa: E402  (stdlib only: torch stays out)
+
+SECTIONS = ("scene", *PIPELINE)  # what a --set item may name
+# an earlier threads.json's runs are kept when these (and the CPU) are the same
+SAME = ("preset", "seed", "set", "config", "stages")
+SAME_MACHINE = ("cpu_model", "cpu_count")
+
+
+def cpu_model() -> str:
+    """The CPU's model name from /proc/cpuinfo ("" where there is none)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.lower().startswith(("model name", "hardware", "cpu model")):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return ""
+
+
+def machine_facts() -> dict:
+    """The machine, and torch's own thread defaults (asked in a fresh process without
+    the OpenMP settings, so this process never loads torch)."""
+    facts = machine()
+    facts.update(
+        cpu_count=os.cpu_count(),
+        affinity=len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        processor=platform.processor(),
+        cpu_model=cpu_model(),
+        python=platform.python_version(),
+        omp_env={k: os.environ[k] for k in sorted(os.environ)
+                 if k.startswith(("OMP_", "GOMP_", "MKL_", "PTOVS_THREADS"))},
+    )  # fmt: skip
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "PTOVS_THREADS")}  # fmt: skip
+    probe = (
+        "import json, torch; print(json.dumps(dict(torch=torch.__version__, "
+        "torch_threads=torch.get_num_threads(), "
+        "torch_interop_threads=torch.get_num_interop_threads())))"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True,
+                         text=True)  # fmt: skip
+    if out.returncode == 0:
+        facts.update(json.loads(out.stdout.strip().splitlines()[-1]))
+    else:
+        facts["torch_error"] = out.stderr[-1000:]
+    git = subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty"],
+                         capture_output=True, text=True)  # fmt: skip
+    facts["commit"] = git.stdout.strip()
+    return facts
+
+
+def scene_folder(args: argparse.Namespace) -> tuple[Path, float | None]:
+    """The scene folder, generated when missing; (folder, seconds it took or None)."""
+    scene = args.data / f"{args.preset}_s{args.seed}"
+    if (scene / "dense").is_dir():
+        return scene, None
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "ptovs", "-q", "synth-scene", str(args.data),
+                    "--preset", args.preset, "--seed", str(args.seed)], check=True)  # fmt: skip
+    return scene, round(time.perf_counter() - t0, 1)
+
+
+def stage_command(args: argparse.Namespace, work: Path, scene: Path, n: int,
+                  stage: str) -> list[str]:  # fmt: skip
+    """`make all`'s command for one stage of the scene, on `n` threads."""
+    cmd = [sys.executable, "-m", "ptovs", "--work-dir", str(work),
+           "--config", str(args.config), "-q", "--threads", str(n)]  # fmt: skip
+    cmd += [f"--set={s}" for s in args.set]
+    return [*cmd, stage, "--scene", scene.name, "--data", str(scene)]
+
+
+def _kill_group(pid: int, killed: threading.Event) -> None:
+    killed.set()
+    try:
+        os.killpg(pid, signal.SIGKILL)
+    except ProcessLookupError:  # ended meanwhile
+        pass
+
+
+def run_stage(cmd: list[str], env: dict, logs: Path, stage: str,
+              budget: float | None) -> dict:  # fmt: skip
+    """One stage in its own process: wall s, its peak RSS (its own rusage from
+    wait4), exit status, stderr's tail on failure. Killed (with what it started)
+    after `budget` s."""
+    out, err = logs / f"{stage}.out", logs / f"{stage}.err"
+    with out.open("w") as fo, err.open("w") as fe:
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, env=env, stdout=fo, stderr=fe,
+                                start_new_session=True)  # fmt: skip
+        timer, killed = None, threading.Event()
+        if budget is not None:
+            timer = threading.Timer(budget, _kill_group, (proc.pid, killed))
+            timer.daemon = True
+            timer.start()
+        try:
+            _, status, usage = os.wait4(proc.pid, 0)
+        finally:
+            if timer is not None:
+                timer.cancel()
+        wall = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here, not by Popen
+    res = {"wall_s": round(wall, 2), "peak_rss_mb": round(usage.ru_maxrss / 1024, 1),
+           "exit": proc.returncode, "cmd": shlex.join(cmd)}  # fmt: skip
+    if proc.returncode != 0:
+        if killed.is_set():
+            res["timeout"] = True
+        res["stderr_tail"] = err.read_text(errors="replace")[-3000:]
+    return res
+
+
+def ok(rec: dict | None) -> bool:
+    return bool(rec) and rec.get("exit") == 0
+
+
+def fmt_s(rec: dict | None) -> str:
+    if rec is None or "skipped" in rec:
+        return "–"
+    if rec.get("exit") != 0:
+        return "timeout" if rec.get("timeout") else f"failed ({rec.get('exit')})"
+    return f"{rec['wall_s']:.1f}"
+
+
+def print_tables(runs: dict[str, dict]) -> None:
+    """Seconds and speed-up a stage and thread count, then peak RSS."""
+    ns = sorted(runs, key=int)
+    measured = [n for n in ns if any("skipped" not in r for r in runs[n].values())]
+    if not measured:
+        print("nothing measured")
+        return
+    base = next((n for n in measured if any(map(ok, runs[n].values()))), measured[0])
+
+    def chain(n: str) -> dict | None:
+        recs = [runs[n].get(s) for s in PIPELINE]
+        if all(ok(r) for r in recs):
+            return {"wall_s": sum(r["wall_s"] for r in recs), "exit": 0}
+        return None
+
+    cols = [c for n in measured for c in (f"{n} thr s", f"×{n} vs {base}")]
+    print("| stage | " + " | ".join(cols) + " |")
+    print("|---|" + "---:|" * len(cols))
+    for name in (*PIPELINE, "chain"):
+        cells = []
+        ref = runs[base].get(name) if name != "chain" else chain(base)
+        for n in measured:
+            rec = runs[n].get(name) if name != "chain" else chain(n)
+            cells.append(fmt_s(rec))
+            both = ok(rec) and ok(ref) and rec["wall_s"] > 0
+            cells.append(f"{ref['wall_s'] / rec['wall_s']:.2f}" if both else "–")
+        print(f"| {name} | " + " | ".join(cells) + " |")
+    print()
+    print("| peak RSS MB | " + " | ".join(f"{n} thr" for n in measured) + " |")
+    print("|---|" + "---:|" * len(measured))
+    for name in PIPELINE:
+        cells = []
+        for n in measured:
+            rec = runs[n].get(name)
+            cells.append(f"{rec['peak_rss_mb']:.0f}" if rec and "peak_rss_mb" in rec
+                         else "–")  # fmt: skip
+        print(f"| {name} | " + " | ".join(cells) + " |")
+    print(flush=True)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--preset", choices=["tiny", "small", "bench", "scale"],
+                   default="small")  # fmt: skip
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, nargs="+", default=[1, 2, 4, 8, 16])
+    p.add_argument("--work", type=Path, default=ROOT / "work" / "threads")
+    p.add_argument("--data", type=Path, default=None,
+                   help="where the scene is generated (default <work>/data)")  # fmt: skip
+    p.add_argument("--config", type=Path, default=ROOT / "configs" / "default.toml",
+                   help="the --config every stage gets (make all's default)")  # fmt: skip
+    p.add_argument("--set", action="append", default=[], metavar="STAGE.KEY=VALUE",
+                   help="passed to every stage's command (repeatable)")  # fmt: skip
+    p.add_argument("--timeout", type=float, default=None,
+                   help="wall budget of the whole run, s: the rest is skipped")  # fmt: skip
+    args = p.parse_args()
+    t_start = time.perf_counter()
+    deadline = None if args.timeout is None else t_start + args.timeout
+    for item in args.set:
+        section, dot, _ = item.partition("=")[0].partition(".")
+        if "=" not in item or not dot or section not in SECTIONS:
+            p.error(f"--set {item!r}: write STAGE.KEY=VALUE, STAGE one of "
+                    + ", ".join(SECTIONS))  # fmt: skip
+    args.work = args.work.resolve()
+    args.data = (args.data or args.work / "data").resolve()
+    args.config = args.config.resolve()
+    args.work.mkdir(parents=True, exist_ok=True)
+
+    from ptovs.atomic import atomic_file
+
+    path = args.work / "threads.json"
+    facts = machine_facts()
+    results = {"machine": facts, "preset": args.preset, "seed": args.seed,
+               "set": list(args.set), "config": str(args.config),
+               "stages": list(PIPELINE), "runs": {}, "skipped": {}}  # fmt: skip
+    if path.exists():  # an earlier run of the same setup keeps its other thread counts
+        old = json.loads(path.read_text())
+        if all(old.get(k) == results[k] for k in SAME) and all(
+            old.get("machine", {}).get(k) == facts[k] for k in SAME_MACHINE
+        ):
+            results["runs"] = old.get("runs", {})
+            results["total_s"] = old.get("total_s", {})
+
+    def save() -> None:
+        with atomic_file(path, keep_suffix=False) as tmp:
+            tmp.write_text(json.dumps(results, indent=1))
+
+    cpus = os.cpu_count() or 1
+    counts = []
+    for n in dict.fromkeys(args.threads):
+        if n < 1 or n > cpus:
+            why = f"{n} threads: this machine has {cpus} CPUs"
+            print(f"skipped: {why}", file=sys.stderr)
+            results["skipped"][str(n)] = why
+            results["runs"].pop(str(n), None)
+        else:
+            counts.append(n)
+    scene, synth_s = scene_folder(args)
+    results["scene"], results["synth_s"] = str(scene), synth_s
+    save()
+
+    for n in counts:
+        runs = results["runs"][str(n)] = {}
+        work = args.work / f"t{n}"
+        shutil.rmtree(work, ignore_errors=True)
+        logs = work / "logs"
+        logs.mkdir(parents=True)
+        env = {k: v for k, v in os.environ.items() if k != "PTOVS_THREADS"}
+        env["OMP_NUM_THREADS"] = str(n)
+        t0, stop = time.perf_counter(), ""
+        for stage in PIPELINE:
+            left = None if deadline is None else deadline - time.perf_counter()
+            if not stop and left is not None and left <= 0:
+                stop = "the --timeout budget ran out"
+            if stop:
+                runs[stage] = {"skipped": stop}
+                continue
+            cmd = stage_command(args, work, scene, n, stage)
+            rec = runs[stage] = run_stage(cmd, env, logs, stage, left)
+            save()
+            print(f"{n} threads  {stage:<20} {fmt_s(rec):>12}{' s' if ok(rec) else ''}"
+                  f"  {rec['peak_rss_mb']:7.0f} MB", file=sys.stderr, flush=True)  # fmt: skip
+            if rec["exit"] != 0:
+                stop = ("the --timeout budget ran out" if rec.get("timeout")
+                        else f"{stage} failed")  # fmt: skip
+                print(rec["stderr_tail"][-1500:], file=sys.stderr)
+        if any("skipped" not in r for r in runs.values()):
+            total = round(time.perf_counter() - t0, 1)
+            results.setdefault("total_s", {})[str(n)] = total
+        save()
+
+    print(f"\n{args.preset} seed {args.seed}"
+          + (f", --set {' '.join(args.set)}" if args.set else "")
+          + f"; {facts['cpu_model'] or facts['processor']}, {cpus} CPUs; "
+          f"torch {facts.get('torch')} ({facts.get('torch_threads')} threads by default)\n")  # fmt: skip
+    print_tables(results["runs"])
+    print(f"results: {path}")
+
+
+if __name__ == "__main__":
+    main()
