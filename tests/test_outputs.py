@@ -343,6 +343,59 @@ def test_every_command_refuses_a_bad_output_with_one_line(
     assert list((base / "a_folder").iterdir()) == []
 
 
+def _advice(line: str) -> Path:
+    """The path an error's "e.g. PATH" advice names."""
+    assert "e.g. " in line, line
+    return Path(line.rsplit("e.g. ", 1)[1].strip().rstrip(".)"))
+
+
+def test_out_is_a_file_or_a_folder_by_one_rule_and_the_advice_works(
+    sweep_work, tiny_scene_dir, tmp_path
+):
+    """`ptovs --help`'s rule: --out is the file of a one-file command, the folder
+    of the others. The wrong kind is refused with an example, and the example,
+    applied as given, runs."""
+    runner = CliRunner()
+    base = tmp_path / "outs"
+    (base / "a_folder").mkdir(parents=True)
+    for name, args in _commands(tiny_scene_dir, base / "masks.png").items():
+        if name not in FOLDER_OUTPUTS:
+            continue
+        res = runner.invoke(main, ["--work-dir", str(sweep_work), *RECON, *args])
+        line = _assert_message(res, f"{name} / file name: ")
+        assert "names a file" in line and "give a folder" in line, line
+        assert not (base / "masks.png").exists()
+        fixed = _advice(line)
+        assert fixed == base / "masks"
+        args = _commands(tiny_scene_dir, fixed)[name]
+        res = runner.invoke(main, ["--work-dir", str(sweep_work), *RECON, *args])
+        assert res.exit_code == 0, (name, res.output)
+        assert fixed.is_dir() and any(fixed.iterdir()), name
+    for name, args in _commands(tiny_scene_dir, base / "a_folder").items():
+        if name in FOLDER_OUTPUTS or name == "select --rest":
+            continue
+        res = runner.invoke(main, ["--work-dir", str(sweep_work), *RECON, *args])
+        line = _assert_message(res, f"{name} / folder: ")
+        fixed = _advice(line)
+        assert fixed.parent == base / "a_folder", line
+        args = _commands(tiny_scene_dir, fixed)[name]
+        res = runner.invoke(main, ["--work-dir", str(sweep_work), *RECON, *args])
+        assert res.exit_code == 0, (name, res.output)
+        assert fixed.is_file(), name
+    help_text = runner.invoke(main, ["--help"]).output
+    assert "--out, in every command" in help_text
+
+
+def test_view_takes_its_folder_as_out(tiny_scene_dir, tmp_path):
+    res = CliRunner().invoke(
+        main,
+        ["--work-dir", str(tmp_path / "w"), "view", "--data", str(tiny_scene_dir),
+         "--port", "1", "--out", str(tmp_path / "sel.ply")],
+    )  # fmt: skip
+    assert res.exit_code != 0
+    assert "Traceback" not in res.output
+
+
 @pytest.mark.skipif(os.geteuid() == 0, reason="root writes read-only folders")
 def test_a_read_only_folder_is_refused(sweep_work, tiny_scene_dir, tmp_path):
     ro = tmp_path / "ro"

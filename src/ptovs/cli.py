@@ -227,6 +227,12 @@ def main(
     Quick start on the synthetic demo scene:
       ptovs synth-scene data --preset tiny
       ptovs status --data data/tiny_s0
+
+    --out, in every command, is where its result goes: the file itself when the
+    command writes one file (export-ply, select, roam, table), else a folder
+    (query, evaluate, style, export-features, view). A folder where a file is
+    asked for, or a file name where a folder is, is refused before any work.
+    -v/-q/--threads work before or after the subcommand.
     """
     _setup_logging(verbose, quiet)
     if threads is not None:

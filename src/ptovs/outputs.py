@@ -89,11 +89,27 @@ def check_outputs(
     return {k: Path(os.path.abspath(v)) for k, v in given.items()}
 
 
+# names that say "a file": a new folder of such a name is a mistake, not a wish
+FILE_SUFFIXES = frozenset(
+    ".png .jpg .jpeg .gif .json .md .ply .mp4 .avi .npy .npz .h5 .txt .csv .toml".split()
+)
+
+
 def check_output_dir(what: str, path: Path) -> Path:
-    """An output folder: may exist (as a folder) or be creatable, and writable."""
+    """An output folder: may exist (as a folder) or be creatable, and writable.
+    The one rule of `--out` (`ptovs --help`): a command that writes several files
+    takes a folder, so a new path named like a file (`masks.png`) is refused."""
     path = Path(path)
     if path.exists() and not path.is_dir():
-        raise OutputError(f"{what} {path} is a file; give a folder")
+        raise OutputError(
+            f"{what} {path} is a file; this command writes several files into a "
+            f"folder: give a folder, e.g. {path.with_suffix('')}"
+        )
+    if not path.exists() and path.suffix.lower() in FILE_SUFFIXES:
+        raise OutputError(
+            f"{what} {path} names a file; this command writes several files into a "
+            f"folder: give a folder, e.g. {path.with_suffix('')}"
+        )
     anc = path if path.is_dir() else _existing_ancestor(path)
     if not anc.is_dir():
         raise OutputError(f"{what} {path}: {anc} is a file, not a folder")

@@ -678,11 +678,13 @@ class Page:
     help="Port to serve on (an error if in use).",
 )
 @click.option(
+    "--out",
     "--out-dir",
+    "out_dir",
     type=click.Path(path_type=Path),
     default=Path("view-exports"),
     show_default=True,
-    help="Where 'Export selection' writes PLYs.",
+    help="Folder where 'Export selection' writes PLYs (--out-dir: the old name).",
 )
 @click.option(
     "--heat-width",
@@ -710,7 +712,7 @@ def command(
     (`make setup` installs it: the [view] extra, then viser==1.0.0 --no-deps).
     Prints the URL, which carries a per-run token: only a page opened from it
     can drive the viewer. Ctrl-C stops the server. Buttons: Highlight the
-    phrase, Clear, Nearest photo, Export selection (PLY, into --out-dir), Play
+    phrase, Clear, Nearest photo, Export selection (PLY, into --out), Play
     tour. Each browser has its own controls; at most 4 at once.
     """
     t0 = time.perf_counter()
@@ -718,7 +720,7 @@ def command(
         if not allow_remote:
             raise InputError(
                 f"view: --host {host} would serve the scene, its queries and "
-                "exports into --out-dir to every machine that can reach this one; "
+                "exports into --out to every machine that can reach this one; "
                 "add --allow-remote if that is meant (the printed URL's token is "
                 "still required), or leave --host at 127.0.0.1"
             )
@@ -729,6 +731,9 @@ def command(
             err=True,
         )
     check_port(host, port)
+    from ptovs.outputs import check_output_dir
+
+    check_output_dir("--out", out_dir)
     chain, ref = ready_chain(obj, scene_name, data, variant, sets)
     try:
         import viser  # noqa: F401
