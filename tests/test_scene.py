@@ -388,6 +388,27 @@ def test_load_image_formats(tmp_path, kind):
         assert np.array_equal(out[..., 0], out[..., 2])
 
 
+def test_transparency_is_reported_once_and_opaque_alpha_is_silent(tmp_path, caplog):
+    rng = np.random.default_rng(2)
+    img = rng.integers(0, 256, (H, W, 4), dtype=np.uint8)
+    img[..., 3] = 255
+    root = _single_image_scene(tmp_path / "opaque", "o.png", img)
+    with caplog.at_level(logging.WARNING, logger="ptovs"):
+        load_image(load_scene(root, downscale=1).views[0])
+    assert "transparent" not in caplog.text
+    img[: H // 2, :, 3] = 0  # the top half cut out
+    root = _single_image_scene(tmp_path / "cut", "c.png", img)
+    view = load_scene(root, downscale=1).views[0]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="ptovs"):
+        out = load_image(view)
+        load_image(view)
+    lines = [r.getMessage() for r in caplog.records if "transparent" in r.getMessage()]
+    assert len(lines) == 1, lines  # once a file
+    assert "c.png" in lines[0] and f"{100 * (H // 2) / H:.0f} %" in lines[0]
+    np.testing.assert_allclose(out, img[:, :, 2::-1] / 255.0, atol=1e-6)  # RGB kept
+
+
 def test_load_image_size_mismatch_is_an_error(tmp_path):
     root, rec, _ = make_scene(tmp_path, layout="colmap")
     scene = load_scene(root)

@@ -64,6 +64,7 @@ from ptovs.artifacts import Store, json_dataset
 from ptovs.atomic import atomic_dir
 from ptovs.errors import InputError, MissingInputError
 from ptovs.scene import jpeg_truncated
+from ptovs.scene.images import report_alpha
 
 log = logging.getLogger(__name__)
 
@@ -171,6 +172,8 @@ def _stage_photos(photos: list[Path], out: Path) -> tuple[list[str], dict[str, s
             shutil.copyfile(src, dst)
             names.append(dst.name)
             continue
+        if img.ndim == 3 and img.shape[2] in (2, 4):
+            report_alpha(src, img[:, :, -1])
         if img.dtype == np.uint16:
             img = (img / 257.0).round().astype(np.uint8)
         elif img.dtype != np.uint8:

@@ -92,6 +92,30 @@ def jpeg_truncated(path: Path) -> bool:
     return head == b"\xff\xd8" and not tail.endswith(b"\xff\xd9")
 
 
+_warned_alpha: set[str] = set()
+
+
+def report_alpha(path: Path | str, alpha: np.ndarray) -> bool:
+    """Say (once a file) that a photo's transparency is not used: ptovs reads the
+    colour stored under transparent pixels as if it were seen. An opaque alpha
+    channel is silent. Returns whether the photo has transparent pixels."""
+    full = np.iinfo(alpha.dtype).max if alpha.dtype.kind in "ui" else 1.0
+    clear = alpha < full
+    if not clear.any():
+        return False
+    if str(path) not in _warned_alpha:
+        _warned_alpha.add(str(path))
+        logger.warning(
+            "image %s has transparent pixels (%.0f %% of it); ptovs reads RGB only, "
+            "so the colour stored under them is used as if seen. Flatten the photo "
+            "onto its background, or leave it out if the transparent part is not "
+            "the scene",
+            path,
+            100 * float(clear.mean()),
+        )
+    return True
+
+
 def load_image(view: Any) -> np.ndarray:  # view: a ptovs.scene.View
     """Decode a view's image at working size.
 
@@ -100,7 +124,8 @@ def load_image(view: Any) -> np.ndarray:  # view: a ptovs.scene.View
 
     Returns:
         RGB float32 [H, W, 3] in [0, 1] at (view.height, view.width). Grayscale is
-        replicated to 3 channels, alpha dropped, 16-bit scaled by 1/65535.
+        replicated to 3 channels, alpha dropped (reported once a file when
+        it is not opaque: `report_alpha`), 16-bit scaled by 1/65535.
     """
     path = view.image_path
     if not path.is_file():
@@ -135,9 +160,12 @@ def load_image(view: Any) -> np.ndarray:  # view: a ptovs.scene.View
     if c == 1:
         img = np.repeat(img, 3, axis=2)
     elif c == 2:  # gray + alpha
+        report_alpha(path, img[:, :, 1])
         img = np.repeat(img[:, :, :1], 3, axis=2)
     elif c in (3, 4):
-        img = img[:, :, 2::-1]  # BGR(A) -> RGB, alpha dropped
+        if c == 4:
+            report_alpha(path, img[:, :, 3])
+        img = img[:, :, 2::-1]  # BGR(A) -> RGB, alpha dropped (reported)
     else:
         raise InputError(f"image {path} has {c} channels; expected 1, 2, 3 or 4")
     h, w = img.shape[:2]
