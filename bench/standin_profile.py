@@ -84,7 +84,8 @@ PHOTO_ROWS = {  # photo-level degradations of the clean render (uint8 RGB)
     "jpeg-7": lambda im: _jpeg(im, 7),
 }
 APPEARANCE_ROWS = ("daylight", "night", "bw", "sepia")
-PIECE_BINS = ((0.0, 0.1), (0.1, 0.4), (0.4, 0.7), (0.7, 1.01))  # share of the part a piece shows
+# a piece's share of its part's pixels in the view
+PIECE_BINS = ((0.0, 0.1), (0.1, 0.4), (0.4, 0.7), (0.7, 1.01))
 OCCLUSION_BINS = ((0.1, 0.3), (0.3, 0.6))
 VIEW_BINS = ((0.0, 30.0), (30.0, 60.0), (60.0, 180.0))
 

@@ -87,6 +87,18 @@ def test_default_toml_matches_every_stage_default():
         assert built == spec.config_cls(), spec.name
 
 
+def test_every_shipped_config_is_valid():
+    """Each file under configs/ passes the whole-config check (sections, keys,
+    types) that `--config` runs before any stage."""
+    from ptovs.config import load_config
+    from ptovs.stage import check_config
+
+    files = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.toml"))
+    assert len(files) >= 5, files
+    for f in files:
+        check_config(load_config(f), str(f))
+
+
 def test_openmp_threads_sleep_and_threads_option():
     """Idle OpenMP threads spin briefly, then sleep, unless the user chose a policy
     (issue 23: long spins slowed reconstruct on a shared machine; issue 24: sleeping
