@@ -195,3 +195,31 @@ def test_global_flags_work_after_the_subcommand(tiny_scene_dir: Path, tmp_path: 
                                      str(tiny_scene_dir), "-q", "--threads", "1"])  # fmt: skip
     assert before.exit_code == after.exit_code == 0, after.output
     assert before.output == after.output
+
+
+def test_a_key_without_its_section_is_told_the_section_and_the_advice_runs(
+    tiny_scene_dir, tmp_path
+):
+    """`ptovs --set threshold=0.9` names `--set query.threshold=0.9` (the old hint
+    named scene.), and that advice, applied as written, is accepted."""
+    import re
+
+    from click.testing import CliRunner
+
+    from ptovs.cli import main
+
+    runner = CliRunner()
+    for bad in ("threshold=0.9", "tau_u=0.85", "treshold=0.9"):
+        args = ["--work-dir", str(tmp_path / "w"), "--set", bad, "status",
+                "--data", str(tiny_scene_dir)]  # fmt: skip
+        res = runner.invoke(main, args)
+        assert res.exit_code == 1 and "Traceback" not in res.output, res.output
+        fixes = re.findall(r"(?:--set )?((?:query|train-ae|sfm)\.\w+)(?:=(\S+))?",
+                           res.output)  # fmt: skip
+        assert fixes, res.output
+        key, value = fixes[0]
+        item = f"{key}={value or bad.split('=')[1]}".rstrip("?,")
+        args[args.index(bad)] = item
+        res = runner.invoke(main, args)
+        assert res.exit_code == 0, (item, res.output)
+    assert not (tmp_path / "w").exists()  # status writes nothing

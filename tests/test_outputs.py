@@ -386,6 +386,37 @@ def test_out_is_a_file_or_a_folder_by_one_rule_and_the_advice_works(
     assert "--out, in every command" in help_text
 
 
+def test_roam_refuses_a_gif_first_and_its_example_runs(sweep_work, tiny_scene_dir,
+                                                         tmp_path):  # fmt: skip
+    """A .gif is named as the wrong kind of file (it once was blamed on the disk),
+    before any work, and the example given runs."""
+    runner = CliRunner()
+    args = _commands(tiny_scene_dir, tmp_path / "tour.gif")["roam"]
+    res = runner.invoke(main, ["--work-dir", str(sweep_work), *RECON, *args])
+    line = _assert_message(res, "roam / gif: ")
+    assert ".mp4 or .avi" in line and "disk" not in line, line
+    fixed = _advice(line)
+    args = _commands(tiny_scene_dir, fixed)["roam"]
+    res = runner.invoke(main, ["--work-dir", str(sweep_work), *RECON, *args])
+    assert res.exit_code == 0 and fixed.is_file(), res.output
+
+
+def test_style_lists_the_scenes_styles_for_an_unknown_one(sweep_work, tiny_scene_dir):
+    """An unknown style on a synthetic scene is answered with its styles, and the
+    candidates given back run."""
+    import shlex
+
+    runner = CliRunner()
+    base = ["--work-dir", str(sweep_work), *RECON, "style", "--data",
+            str(tiny_scene_dir), "--images", "2"]  # fmt: skip
+    res = runner.invoke(main, [*base, "--candidates", "Gothic,Baroque"])
+    line = _assert_message(res, "style / unknown: ")
+    assert "styles" in line and "Brick" not in line, line
+    given = shlex.split(line.split("--candidates ", 1)[1].split(" (", 1)[0])
+    res = runner.invoke(main, [*base, "--candidates", *given])
+    assert res.exit_code == 0, res.output
+
+
 def test_view_takes_its_folder_as_out(tiny_scene_dir, tmp_path):
     res = CliRunner().invoke(
         main,

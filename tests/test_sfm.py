@@ -346,3 +346,29 @@ def test_pixel_thresholds_follow_the_photo_size(tmp_path):
     assert _pixel_scale(db_with([(4243, 2828)] * 3), cfg) == 1.0  # 12 MP: COLMAP's
     assert _pixel_scale(db_with([(100, 80)]), cfg) == 0.25  # clamped
     assert _pixel_scale(db_with([(640, 480)]), SfmConfig(pixel_scale=2.0)) == 2.0
+
+
+def test_sfm_tips_are_valid_settings_that_change_what_ran():
+    """The advice when too few photos register: each tip, applied as written,
+    is a valid setting and a different one from what ran (issue 42: the old tips
+    named the defaults)."""
+    import re
+
+    from ptovs.config import build_config, parse_sets
+    from ptovs.sfm import SfmConfig, sfm_tips
+    from ptovs.stage import check_config
+
+    for ran, pairing in ((SfmConfig(), "exhaustive"), (SfmConfig(), "retrieval"),
+                         (SfmConfig(min_num_matches=6, max_image_size=4096), "")):  # fmt: skip
+        tips = sfm_tips(ran, pairing)
+        sets = [s for tip in tips for s in re.findall(r"(sfm\.\w+=\S+?)`", tip)]
+        assert all(("pairing" in s) == ("pairing=exhaustive" in s) for s in sets)
+        for item in sets:
+            cfg = parse_sets([item])
+            check_config(cfg)
+            new = build_config(SfmConfig, cfg["sfm"], "sfm")
+            key = item.split(".", 1)[1].split("=")[0]
+            used = pairing if key == "pairing" and pairing else getattr(ran, key)
+            assert getattr(new, key) != used, (item, tips)
+        if pairing == "exhaustive":
+            assert not any("pairing" in t for t in tips)

@@ -74,8 +74,8 @@ def parse_sets(items: Iterable[str], section: str | None = None) -> dict[str, An
         if len(parts) == 1:
             if section is None:
                 raise InputError(
-                    f"--set {item!r}: on the ptovs group a key needs its section, "
-                    f"e.g. --set scene.{key}=..."
+                    f"--set {item!r}: on the ptovs group a key needs its section: "
+                    + _sections_with(key, value.strip())
                 )
             parts = [section, key]
         if any(not p for p in parts):
@@ -85,6 +85,24 @@ def parse_sets(items: Iterable[str], section: str | None = None) -> dict[str, An
             node = node.setdefault(p, {})
         node[parts[-1]] = parse_value(value.strip())
     return out
+
+
+def _sections_with(key: str, value: str) -> str:
+    """Advice for a key given without its section: the sections that have it."""
+    from ptovs.stage import config_sections
+
+    have = [name for name, keys in config_sections().items() if key in keys]
+    if not have:
+        import difflib
+
+        every = [f"{n}.{k}" for n, keys in config_sections().items() for k in keys]
+        near = difflib.get_close_matches(key, [e.split(".", 1)[1] for e in every], 3)
+        hint = [e for e in every if e.split(".", 1)[1] in near][:3]
+        return f"no section has a key {key!r}" + (
+            f" (did you mean {' or '.join(hint)}?)" if hint else
+            "; `ptovs <command> --help` lists each stage's keys"
+        )  # fmt: skip
+    return " or ".join(f"--set {name}.{key}={value}" for name in have)
 
 
 def merge(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:

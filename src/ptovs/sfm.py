@@ -457,6 +457,23 @@ def _match_features(
     return pairing
 
 
+def sfm_tips(config: SfmConfig, pairing: str = "") -> list[str]:
+    """Settings to try when too few photos register: each one a step from the
+    settings that ran (never the value already in use; `pairing`: the pairing
+    that ran, when "auto" chose it)."""
+    tips = []
+    if config.min_num_matches > 6:
+        tips.append(f"`ptovs --set sfm.min_num_matches={max(6, config.min_num_matches - 4)}` "
+                    "(fewer inliers per pair)")  # fmt: skip
+    if (pairing or config.pairing) != "exhaustive":
+        tips.append("`ptovs --set sfm.pairing=exhaustive` (every pair matched)")
+    if config.max_image_size < 2048:
+        tips.append(f"`ptovs --set sfm.max_image_size={2 * config.max_image_size}` "
+                    f"and `sfm.max_num_features={2 * config.max_num_features}` "
+                    "(more features)")  # fmt: skip
+    return tips
+
+
 def run_sfm(photo_folder: Path, workdir: Path, config: SfmConfig) -> dict[str, Any]:
     """Pose the photos; returns the report and the paths of the undistorted model.
 
@@ -540,10 +557,8 @@ def run_sfm(photo_folder: Path, workdir: Path, config: SfmConfig) -> dict[str, A
             f"{photo_folder}: SfM registered {len(registered)} of {len(photos)} photos "
             f"(at least {MIN_REGISTERED} are needed). Try: more photos that overlap "
             "(each part of the landmark seen from several nearby viewpoints), "
-            "`ptovs --set sfm.min_num_matches=10` (fewer inliers per pair), "
-            "`ptovs --set sfm.pairing=exhaustive`, `ptovs --set "
-            "sfm.max_image_size=2048` (more features), or pose the photos with "
-            "COLMAP yourself and pass the scene folder"
+            + "".join(f"{tip}, " for tip in sfm_tips(config, pairing))
+            + "or pose the photos with COLMAP yourself and pass the scene folder"
         )
     if unregistered:
         log.warning(

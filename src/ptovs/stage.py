@@ -159,6 +159,18 @@ def did_you_mean(name: str, choices: Iterable[str], fmt: str = "{!r}") -> str:
     return f" (did you mean {fmt.format(near[0])}?)" if near else ""
 
 
+def config_sections() -> dict[str, list[str]]:
+    """Every config section and its keys: [scene], [sfm] and each stage's."""
+    from ptovs.sfm import SfmConfig
+
+    out = {SCENE: [f.name for f in dataclasses.fields(SceneConfig)],
+           SFM: [f.name for f in dataclasses.fields(SfmConfig)]}  # fmt: skip
+    for name in dict.fromkeys([*STAGE_MODULES, *REGISTRY]):
+        if name not in out:
+            out[name] = [f.name for f in dataclasses.fields(get_stage(name).config_cls)]
+    return out
+
+
 def check_config(config: Mapping[str, Any], origin: str = "the config") -> None:
     """Every section and key of a merged config (`--config` file plus the group's
     `--set` items), checked before anything runs: an unknown section or key, or a

@@ -202,6 +202,7 @@ MAX_FRAMES = 100_000  # --frames: over an hour at 25 frames/s
 # and appearance at every pixel
 BYTES_PER_PIXEL = {"select": 256, "query": 4096}
 VIDEO_BYTES_PER_PIXEL = 0.5  # mp4v at OpenCV's default quality, generous
+VIDEO_SUFFIXES = (".mp4", ".avi")  # what the mp4v writer opens everywhere
 
 
 def check_frame_size(width: int, height: int, frames: int, mode: str) -> None:
@@ -324,6 +325,12 @@ def command(
         raise click.BadParameter(f"{size!r}: write WIDTHxHEIGHT, e.g. 320x240",
                                  param_hint="--size") from None  # fmt: skip
     check_frame_size(width, height, frames, mode)
+    if out.suffix.lower() not in VIDEO_SUFFIXES:
+        raise InputError(
+            f"roam: --out {out}: roam writes an .mp4 or .avi video (OpenCV's mp4v "
+            f"codec), not {out.suffix or 'a suffix-less file'}; e.g. "
+            f"{out.with_suffix('.mp4')}"
+        )
     record_path = out.with_suffix(".json")
     check_outputs({"--out": out, f"the record beside --out ({record_path.name})": record_path},
                   need_bytes=int(width * height * frames * VIDEO_BYTES_PER_PIXEL),

@@ -145,6 +145,23 @@ def style_panel(
     return np.hstack(out)
 
 
+def check_styles(scene, styles: list[str]) -> None:
+    """On a synthetic scene the stand-in knows its own style names only (any other
+    embeds as noise): refuse the others, listing the styles (not the parts)."""
+    if not scene.synthetic:
+        return
+    from ptovs.encoders.synthetic import SyntheticEncoder
+
+    enc = SyntheticEncoder.from_scene(scene.root)
+    unknown = [s for s in styles if not enc.knows(s)]
+    if unknown:
+        raise InputError(
+            f"style: {unknown} not among the synthetic scene's styles; its "
+            f'candidates: --candidates "{",".join(enc.styles)}" (the stand-in knows '
+            "only those; real scenes use OpenCLIP, which takes any text)"
+        )
+
+
 def default_candidates(scene) -> list[str]:
     if scene.synthetic:
         from ptovs.encoders.synthetic import SyntheticEncoder
@@ -222,6 +239,7 @@ def command(
         styles = default_candidates(scene)
     if len(styles) < 2:
         raise InputError("style: give at least two candidate styles")
+    check_styles(scene, styles)
     views = sample_views(scene, n_images, seed, which)
     folder = out or obj.work_dir / ref.name / "style-out" / variant
     saved: list[tuple] = []
