@@ -223,3 +223,33 @@ def test_a_key_without_its_section_is_told_the_section_and_the_advice_runs(
         res = runner.invoke(main, args)
         assert res.exit_code == 0, (item, res.output)
     assert not (tmp_path / "w").exists()  # status writes nothing
+
+
+def test_a_number_no_stage_can_use_is_refused_and_the_range_named(tiny_scene_dir,
+                                                                  tmp_path):  # fmt: skip
+    """Negative counts, NaN, a threshold nothing passes: one line naming the key
+    and its range before anything runs (they used to run, or fail late); a value
+    at the named range's edge is accepted."""
+    from click.testing import CliRunner
+
+    from ptovs.cli import main
+
+    runner = CliRunner()
+    cases = {  # the value given, and the nearest one the message allows
+        "reconstruct.iterations=-5": "reconstruct.iterations=1",
+        "render-appearances.n_appearances=0": "render-appearances.n_appearances=1",
+        "query.threshold=1.5": "query.threshold=0.99",
+        "train-ae.tau_u=1.2": "train-ae.tau_u=1.0",
+        "query.temperature=nan": "query.temperature=0",
+        "reconstruct.import_iteration=-2": "reconstruct.import_iteration=-1",
+    }
+    for bad, good in cases.items():
+        args = ["--work-dir", str(tmp_path / "w"), "--set", bad, "status",
+                "--data", str(tiny_scene_dir)]  # fmt: skip
+        res = runner.invoke(main, args)
+        assert res.exit_code == 1 and "Traceback" not in res.output, res.output
+        assert f"{bad.split('=')[0]} = " in res.output and "must be" in res.output
+        args[args.index(bad)] = good
+        assert runner.invoke(main, args).exit_code == 0, good
+    res = runner.invoke(main, ["synth-scene", str(tmp_path / "d"), "--seed", "-1"])
+    assert res.exit_code == 2 and "Traceback" not in res.output

@@ -395,10 +395,28 @@ def test_roam_refuses_a_gif_first_and_its_example_runs(sweep_work, tiny_scene_di
     res = runner.invoke(main, ["--work-dir", str(sweep_work), *RECON, *args])
     line = _assert_message(res, "roam / gif: ")
     assert ".mp4 or .avi" in line and "disk" not in line, line
+    assert not list(tmp_path.iterdir())
     fixed = _advice(line)
     args = _commands(tiny_scene_dir, fixed)["roam"]
     res = runner.invoke(main, ["--work-dir", str(sweep_work), *RECON, *args])
     assert res.exit_code == 0 and fixed.is_file(), res.output
+
+
+def test_a_ply_output_named_as_another_file_is_refused_and_its_example_runs(
+    sweep_work, tiny_scene_dir, tmp_path
+):
+    runner = CliRunner()
+    for name in ("export-ply", "select"):
+        args = _commands(tiny_scene_dir, tmp_path / "sel.txt")[name]
+        res = runner.invoke(main, ["--work-dir", str(sweep_work), *RECON, *args])
+        line = _assert_message(res, f"{name} / txt: ")
+        assert ".ply file" in line, line
+        fixed = _advice(line)
+        assert fixed == tmp_path / "sel.ply"
+        args = _commands(tiny_scene_dir, fixed)[name]
+        res = runner.invoke(main, ["--work-dir", str(sweep_work), *RECON, *args])
+        assert res.exit_code == 0 and fixed.is_file(), res.output
+        fixed.unlink()
 
 
 def test_style_lists_the_scenes_styles_for_an_unknown_one(sweep_work, tiny_scene_dir):

@@ -264,7 +264,7 @@ def main(
 )
 @click.option(
     "--seed",
-    type=int,
+    type=click.IntRange(0),
     default=0,
     show_default=True,
     help="A new seed is a new landmark, cameras and appearances.",
@@ -389,10 +389,11 @@ def export_ply(
     into the SH, so any 3DGS viewer shows it.
     """
     from ptovs.field.export import export_field_ply
-    from ptovs.outputs import check_outputs
+    from ptovs.outputs import check_outputs, require_suffix
     from ptovs.stage import Chain
 
     check_outputs({"--out": out}, suffix=".ply")
+    require_suffix("--out", out, (".ply",))
     ref = resolve_scene(obj, scene_name, data)
     chain = Chain(obj, ref)
     art = chain.inputs_of("reconstruct")

@@ -191,6 +191,43 @@ def _coerce(value: Any, hint: Any, where: str) -> Any:
     return value
 
 
+# The range of a numeric config value, by its key (in any section). Every other
+# number must be finite and >= 0: no key of ptovs takes a negative value or NaN.
+AT_LEAST_ONE = frozenset(
+    "iterations epochs batch_size n_appearances crop_size sam_points_per_side "
+    "max_image_size max_num_features max_gaussians densify_every sh_increase_every "
+    "opacity_reset_every checkpoint_every retrieval_k min_num_matches "
+    "min_pose_inliers cache_mb window_rows patience stop_patience table_size "
+    "downscale".split()
+)
+UNIT = frozenset(  # fractions and probabilities: [0, 1]
+    "quality_quantile tau_u heldout_fraction test_fraction percent_dense "
+    "prune_opacity prune_unseen repeat_threshold min_alpha min_opacity "
+    "min_visibility".split()
+)
+BELOW_ONE = frozenset({"threshold"})  # [0, 1): at 1 nothing can pass
+SIGNED = {"import_iteration": -1}  # -1: the latest
+
+
+def check_range(key: str, value: Any) -> None:
+    """Refuse a number no stage can use (`AT_LEAST_ONE`, `UNIT`, `BELOW_ONE`,
+    `SIGNED`; otherwise finite and >= 0), naming the key and its range."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return
+    name = key.rsplit(".", 1)[-1]
+    lo, hi, why = 0, None, ">= 0"
+    if name in AT_LEAST_ONE:
+        lo, why = 1, ">= 1"
+    elif name in UNIT:
+        hi, why = 1.0, "between 0 and 1"
+    elif name in BELOW_ONE:
+        hi, why = math.nextafter(1.0, 0.0), "at least 0 and below 1"
+    elif name in SIGNED:
+        lo, why = SIGNED[name], f">= {SIGNED[name]}"
+    if not math.isfinite(value) or value < lo or (hi is not None and value > hi):
+        raise InputError(f"{key} = {value!r}: must be {why}")
+
+
 def build_config(cls: type, section: Mapping[str, Any] | None, name: str) -> Any:
     """Instantiate a frozen config dataclass from a config section.
 
@@ -205,6 +242,8 @@ def build_config(cls: type, section: Mapping[str, Any] | None, name: str) -> Any
             f"[{name}] has unknown key(s) {unknown}; valid keys: {sorted(known)}"
         )
     kwargs = {k: _coerce(v, hints[k], f"{name}.{k}") for k, v in section.items()}
+    for k, v in kwargs.items():
+        check_range(f"{name}.{k}", v)
     try:
         return cls(**kwargs)
     except (TypeError, ValueError) as exc:

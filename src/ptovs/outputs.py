@@ -95,6 +95,16 @@ FILE_SUFFIXES = frozenset(
 )
 
 
+def require_suffix(what: str, path: Path | None, suffixes: tuple[str, ...]) -> None:
+    """A one-file output whose name says another kind of file (`sel.txt` for a
+    PLY) is refused with the name it should have."""
+    if path is not None and Path(path).suffix.lower() not in suffixes:
+        raise OutputError(
+            f"{what} {path}: this command writes a {' or '.join(suffixes)} file; "
+            f"e.g. {Path(path).with_suffix(suffixes[0])}"
+        )
+
+
 def check_output_dir(what: str, path: Path) -> Path:
     """An output folder: may exist (as a folder) or be creatable, and writable.
     The one rule of `--out` (`ptovs --help`): a command that writes several files

@@ -30,7 +30,13 @@ import torch
 
 from ptovs.apps import close_inputs, trained_chain
 from ptovs.errors import InputError
-from ptovs.outputs import OutputError, check_outputs, output_file, write_text_output
+from ptovs.outputs import (
+    OutputError,
+    check_outputs,
+    output_file,
+    require_suffix,
+    write_text_output,
+)
 from ptovs.raster import Camera
 from ptovs.stage import RunContext, chain_options
 
@@ -325,16 +331,11 @@ def command(
         raise click.BadParameter(f"{size!r}: write WIDTHxHEIGHT, e.g. 320x240",
                                  param_hint="--size") from None  # fmt: skip
     check_frame_size(width, height, frames, mode)
-    if out.suffix.lower() not in VIDEO_SUFFIXES:
-        raise InputError(
-            f"roam: --out {out}: roam writes an .mp4 or .avi video (OpenCV's mp4v "
-            f"codec), not {out.suffix or 'a suffix-less file'}; e.g. "
-            f"{out.with_suffix('.mp4')}"
-        )
     record_path = out.with_suffix(".json")
     check_outputs({"--out": out, f"the record beside --out ({record_path.name})": record_path},
                   need_bytes=int(width * height * frames * VIDEO_BYTES_PER_PIXEL),
                   suffix=".mp4")  # fmt: skip
+    require_suffix("--out", out, VIDEO_SUFFIXES)  # a .gif was once blamed on the disk
     chain, ref = trained_chain(obj, scene_name, data, variant, sets)
     scene = ref.load()
     target = np.median(scene.points_xyz, 0) if len(scene.points_xyz) else np.zeros(3)

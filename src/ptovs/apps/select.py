@@ -108,12 +108,14 @@ def command(
     count, level and score. Runs any missing stage of the chain first.
     """
     from ptovs.field.export import export_field_ply
-    from ptovs.outputs import check_outputs, write_text_output
+    from ptovs.outputs import check_outputs, require_suffix, write_text_output
 
     record_path = out.with_suffix(".json")
     check_outputs({"--out": out, "--rest": rest,
                    f"the record beside --out ({record_path.name})": record_path},
                   suffix=".ply")  # fmt: skip
+    require_suffix("--out", out, (".ply",))
+    require_suffix("--rest", rest, (".ply",))
     chain, ref = trained_chain(obj, scene_name, data, variant, sets)
     t0 = time.perf_counter()
     options = SelectOptions(min_opacity, min_visibility, smooth)
