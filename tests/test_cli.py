@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from click.testing import CliRunner
 
 from ptovs.cli import main as cli
@@ -253,3 +254,20 @@ def test_a_number_no_stage_can_use_is_refused_and_the_range_named(tiny_scene_dir
         assert runner.invoke(main, args).exit_code == 0, good
     res = runner.invoke(main, ["synth-scene", str(tmp_path / "d"), "--seed", "-1"])
     assert res.exit_code == 2 and "Traceback" not in res.output
+
+
+def test_a_list_whose_quotes_the_shell_ate_is_read_and_its_items_checked():
+    """`--set extract-features.levels=[s,m]` (bash drops the quotes of ["s","m"])
+    is the list it means; an unknown level is named before anything runs."""
+    from ptovs.config import parse_sets
+    from ptovs.errors import InputError
+    from ptovs.stage import check_config
+
+    assert parse_sets(["extract-features.levels=[s, m]"]) == {
+        "extract-features": {"levels": ["s", "m"]}
+    }
+    check_config(parse_sets(['extract-features.levels=["s","m"]']))
+    with pytest.raises(InputError, match="'x': must be one of"):
+        check_config(parse_sets(["extract-features.levels=[s,x]"]))
+    with pytest.raises(InputError, match=r"expected a list, e.g. --set"):
+        check_config(parse_sets(["extract-features.levels=s"]))

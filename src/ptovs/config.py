@@ -49,6 +49,9 @@ def parse_value(text: str) -> Any:
     try:
         return tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
+        t = text.strip()
+        if t.startswith("[") and t.endswith("]"):  # [s,m]: the shell ate the quotes
+            return [parse_value(w.strip()) for w in t[1:-1].split(",") if w.strip()]
         return text
 
 
@@ -166,7 +169,9 @@ def _coerce(value: Any, hint: Any, where: str) -> Any:
         return value
     if origin is tuple:
         if not isinstance(value, (list, tuple)):
-            raise InputError(f"{where} = {value!r}: expected a list")
+            raise InputError(
+                f'{where} = {value!r}: expected a list, e.g. --set \'{where}=["a", "b"]\''
+            )
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_coerce(v, args[0], where) for v in value)
         if len(args) != len(value):

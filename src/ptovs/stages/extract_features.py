@@ -43,7 +43,7 @@ VERSION = 1
 
 @dataclass(frozen=True)
 class Config:
-    levels: tuple[str, ...] = ("s", "m", "l")
+    levels: tuple[Literal["default", "s", "m", "l"], ...] = ("s", "m", "l")
     """Levels, from "default", "s", "m", "l" (LangSplat's four; the paper uses s/m/l)."""
     segmenter: Literal["graph", "hier", "sam", "truth"] = "hier"
     """"graph": one Felzenszwalb pass per level; "hier": nested levels cut from
