@@ -57,7 +57,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # Gaussians, 2.5 %, at relevancy score 0.477 on 2026-11-26's machine)
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo view test system-deps test-slurm lint format bench bench-accuracy bench-upstream bench-standin bench-multiapp all cluster scenes table status clean-work $(SCENES)
+.PHONY: setup demo view test system-deps test-slurm lint format bench bench-accuracy bench-upstream bench-standin bench-multiapp check-readme all cluster scenes table status clean-work $(SCENES)
 
 setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml
@@ -86,6 +86,11 @@ view: setup
 
 test: setup system-deps
 	$(BIN)/python -m pytest -q
+
+# the README's commands run as written on the synthetic scenes they name (about an
+# hour; tests/test_readme.py checks every line parses, in seconds)
+check-readme: setup
+	$(BIN)/python tools/check_readme.py --root work/readme
 
 # the system packages the tests need (g++, chromium, a single-node Slurm): installed
 # when run as root, else the one command to run is printed before the suite starts

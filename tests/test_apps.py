@@ -208,7 +208,8 @@ def test_empty_selection_is_a_clear_error_and_writes_nothing(
 ):
     out = tmp_path / "none.ply"
     res = _cli(app_work, "select", "Brick Facade", "--data", str(tiny_scene_dir),
-               "--out", str(out), "--set", "query.threshold=1.0")  # fmt: skip
+               "--out", str(out), "--min-visibility", "1.0")  # fmt: skip
+    # (a blend weight is alpha x transmittance, alpha at most 0.99: none reaches 1)
     assert res.exit_code != 0
     assert "no Gaussian" in res.output and "nothing written" in res.output
     assert not out.exists()
