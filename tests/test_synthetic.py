@@ -451,3 +451,39 @@ def test_query_mask_drops_only_slivers():
     assert not m[15, 15] and not m[18, 3:5].any()
     assert MIN_COMPONENT_PX == 3
     assert not query_mask(part, [2]).any()
+
+
+def test_landmark_preset_and_photos_make_one_world_at_any_size(tmp_path: Path) -> None:
+    """`--photos N` keeps the preset's test and labelled views and the first other
+    train photos: a smaller collection is a subset of a larger one, same pixels."""
+    from click.testing import CliRunner
+
+    from ptovs.cli import main
+    from ptovs.scene import load_scene
+    from ptovs.synthetic.generate import photo_subset, plan_scene
+
+    cfg = PRESETS["landmark"]
+    assert cfg.n_train == 763 and cfg.long_side == (640, 760)
+    plan = plan_scene("landmark", 0)
+    small, large = (
+        photo_subset(plan, "landmark", 24),
+        photo_subset(plan, "landmark", 40),
+    )
+    assert set(small) < set(large)
+    assert set(plan.test_ids) | set(plan.eval_ids) <= set(small)
+    assert len(small) == 24 + cfg.n_test
+    assert photo_subset(plan, "landmark", None) == list(range(763 + cfg.n_test))
+
+    runner = CliRunner()
+    res = runner.invoke(main, ["synth-scene", str(tmp_path), "--preset", "landmark",
+                               "--photos", "3"])  # fmt: skip
+    assert res.exit_code == 2 and "labelled views" in res.output, res.output
+    res = runner.invoke(main, ["synth-scene", str(tmp_path), "--preset", "landmark",
+                               "--photos", "24"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    scene = load_scene(tmp_path / "landmark_s0_p24")
+    assert len(scene.train_views()) == 24 and len(scene.test_views()) == cfg.n_test
+    assert len(scene.labelled_views()) == len(plan.eval_ids)
+    assert all(640 <= max(v.width, v.height) <= 760 for v in scene.views)
+    names = {v.name for v in scene.views}
+    assert names == {f"{plan.stems[i]}.jpg" for i in small}

@@ -256,11 +256,19 @@ def main(
 @click.argument("out", type=click.Path(path_type=Path))
 @click.option(
     "--preset",
-    type=click.Choice(["tiny", "small", "bench", "scale"]),
+    type=click.Choice(["tiny", "small", "bench", "landmark", "scale"]),
     default="tiny",
     show_default=True,
     help="Scene size: tiny (CI, ~12 views), small (the accuracy benchmark, ~48 "
-    "views), bench (~80 views), scale (~3,000 small views).",
+    "views), bench (~80 views), landmark (763 views of 640-760 px, a "
+    "Brandenburg-sized collection), scale (~3,000 small views).",
+)
+@click.option(
+    "--photos",
+    type=click.IntRange(1),
+    default=None,
+    help="Keep N of the preset's train photos (its labelled and test views, then "
+    "the others in order): the same world at another size. Name: <preset>_s<seed>_pN.",
 )
 @click.option(
     "--seed",
@@ -281,7 +289,12 @@ def main(
     "(calibrated against CLIP's published failure profile; docs/standin.md).",
 )
 def synth_scene(
-    out: Path, preset: str, seed: int, name: str | None, standin: str
+    out: Path,
+    preset: str,
+    photos: int | None,
+    seed: int,
+    name: str | None,
+    standin: str,
 ) -> None:
     """Generate a synthetic landmark photo collection in PT-OVS layout under OUT.
 
@@ -294,9 +307,14 @@ def synth_scene(
     from ptovs.synthetic import generate_scene
 
     t0 = time.perf_counter()
-    scene_dir = generate_scene(
-        out, preset=preset, seed=seed, name=name, standin=int(standin)
-    )
+    try:
+        scene_dir = generate_scene(out, preset=preset, seed=seed, name=name,
+                                   standin=int(standin), photos=photos)  # fmt: skip
+    except ValueError as exc:
+        if "--photos" not in str(exc):
+            raise
+        raise click.BadParameter(str(exc).split(": ", 1)[1],
+                                 param_hint="--photos") from None  # fmt: skip
     click.echo(f"wrote {scene_dir} ({time.perf_counter() - t0:.1f} s)")
 
 

@@ -138,6 +138,23 @@ PRESETS: dict[str, Preset] = {
         track_keep=1.0,
         swatch_px=96,
     ),
+    # a Brandenburg-sized collection (PT-OVS: 763 train photos at about 700 px on the
+    # long side): bench's landmarks and evaluation design at a real photo size.
+    # One sample a pixel (at this size aliasing is a pixel's, not a part's) and a
+    # tenth of each point's observations keep generation and the model's tracks
+    # within minutes and memory; `--photos N` takes the first N train photos.
+    "landmark": Preset(
+        n_train=763,
+        n_test=8,
+        n_eval=20,
+        n_cand=42,
+        long_side=(640, 760),
+        n_parts=(6, 8),
+        aa=1,
+        points_per_image=60,
+        track_keep=0.1,
+        swatch_px=96,
+    ),
     "scale": Preset(
         n_train=3000,
         n_test=60,
@@ -674,6 +691,27 @@ def plan_scene(preset: str, seed: int, standin: int = 1) -> ScenePlan:
     )
 
 
+def photo_subset(plan: ScenePlan, preset: str, photos: int | None) -> list[int]:
+    """The images a scene of `photos` train photos keeps, as indices into the plan:
+    every test and evaluation view, then the other train views in order. So the
+    same world, test split and labelled views come at every size, and a smaller
+    collection's photos are a subset of a larger one's (the same pixels)."""
+    cfg = PRESETS[preset]
+    n_img = cfg.n_train + cfg.n_test
+    if photos is None or photos == cfg.n_train:
+        return list(range(n_img))
+    evals = [i for i in plan.eval_ids if i not in plan.test_ids]
+    if not len(evals) <= photos <= cfg.n_train:
+        raise ValueError(
+            f"--photos {photos}: preset {preset!r} takes {len(evals)} to "
+            f"{cfg.n_train} train photos (its {len(evals)} labelled views are train "
+            "photos)"
+        )
+    keep = set(plan.test_ids) | set(evals)
+    others = [i for i in range(n_img) if i not in keep]
+    return sorted(keep | set(others[: photos - len(evals)]))
+
+
 def eval_labels(preset: str, seed: int) -> list[dict]:
     """The ISAT labels `generate_scene` writes for (preset, seed), without the rest.
 
@@ -763,6 +801,7 @@ def generate_scene(
     name: str | None = None,
     progress: bool = True,
     standin: int = 1,
+    photos: int | None = None,
 ) -> Path:
     """Generate a synthetic landmark scene in PT-OVS layout.
 
@@ -792,16 +831,18 @@ def generate_scene(
         raise ValueError(f"seed must be >= 0, got {seed}")
     pycolmap.logging.minloglevel = 2
     cfg = PRESETS[preset]
-    name = name or f"{preset}_s{seed}"
+    name = name or f"{preset}_s{seed}" + (f"_p{photos}" if photos else "")
     out = Path(out)
     scene, label_dir = _prepare_out(out, name)
     truth_dir = scene / "synthetic" / "truth"
     image_dir = scene / "dense" / "images"
 
     plan = plan_scene(preset, seed, standin)
-    world, cams, queries = plan.world, plan.cams, plan.queries
+    world, queries = plan.world, plan.queries
     eval_ids, distractor = plan.eval_ids, plan.distractor
-    n_img = cfg.n_train + cfg.n_test
+    ids = photo_subset(plan, preset, photos)
+    cams = [plan.cams[i] for i in ids]
+    n_img = len(ids)
     logger.info(
         "%s: %d parts, queries %s (+ distractor %r), %d eval views; screen: %s",
         name,
@@ -815,13 +856,15 @@ def generate_scene(
     records: list[dict] = []
     all_bbs: list[list[Billboard]] = []
     pts_xyz, pts_part, pts_src, pts_px = [], [], [], []
-    for i in tqdm(range(n_img), desc=f"synth {name}", disable=not progress, unit="img"):
+    for pos, i in enumerate(
+        tqdm(ids, desc=f"synth {name}", disable=not progress, unit="img")
+    ):
         rec, bbs, (xyz, part, px) = _photo(
             plan, cfg, i, seed, name, image_dir, truth_dir, label_dir
         )
         pts_xyz.append(xyz)
         pts_part.append(part)
-        pts_src.append(np.full(len(xyz), i))
+        pts_src.append(np.full(len(xyz), pos))
         pts_px.append(px)
         all_bbs.append(bbs)
         records.append(rec)
@@ -830,7 +873,7 @@ def generate_scene(
     part = np.concatenate(pts_part).astype(np.int16)
     src = np.concatenate(pts_src)
     px = np.concatenate(pts_px)
-    tracks = _tracks(world, cams, all_bbs, xyz, src, px, cfg, seed, progress)
+    tracks = _tracks(world, cams, all_bbs, xyz, src, px, cfg, seed, progress, ids)
     keep = np.array([len(t) >= 2 for t in tracks])
     ids = _write_colmap(
         scene / "dense" / "sparse", records, cams, world, xyz, part, tracks, keep
@@ -890,8 +933,11 @@ def _tracks(
     cfg: Preset,
     seed: int,
     progress: bool,
+    ids: list[int],
 ) -> list[list[tuple[int, float, float]]]:
-    """Per point, its observations (image index, u, v); the source view first."""
+    """Per point, its observations (position in `cams`, u, v); the source view
+    first. `ids`: each camera's index in the plan (it keys the random draws, so a
+    photo keeps its observations in a subset of the collection)."""
     tracks: list[list[tuple[int, float, float]]] = [
         [(int(s), float(p[1]) + 0.5, float(p[0]) + 0.5)]
         for s, p in zip(src, px, strict=True)
@@ -904,7 +950,7 @@ def _tracks(
         inb &= (uv[:, 1] < cam.height) & (src != c)
         idx = np.flatnonzero(inb)
         if cfg.track_keep < 1.0:
-            idx = idx[_rng(seed, 6, c).random(len(idx)) < cfg.track_keep]
+            idx = idx[_rng(seed, 6, ids[c]).random(len(idx)) < cfg.track_keep]
         idx, uvk = _observations(world, cam, bbs[c], xyz, idx)
         for k, (u, v) in zip(idx.tolist(), uvk.tolist(), strict=True):
             tracks[k].append((c, u, v))
@@ -929,7 +975,7 @@ def _write_colmap(
     for k in np.flatnonzero(keep):
         el = []
         for c, u, v in tracks[k]:
-            el.append((c + 1, len(kps[c])))
+            el.append((records[c]["image_id"], len(kps[c])))
             kps[c].append((u, v))
         elems.append(el)
     rec = pycolmap.Reconstruction()
