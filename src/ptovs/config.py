@@ -243,8 +243,13 @@ def build_config(cls: type, section: Mapping[str, Any] | None, name: str) -> Any
     known = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(section) - known)
     if unknown:
+        import difflib
+
+        near = difflib.get_close_matches(unknown[0], sorted(known), n=1)
+        hint = f" (did you mean {near[0]!r}?)" if near else ""
         raise InputError(
-            f"[{name}] has unknown key(s) {unknown}; valid keys: {sorted(known)}"
+            f"[{name}] has no key {unknown[0]!r}{hint}; valid keys: "
+            f"{', '.join(sorted(known))}"
         )
     kwargs = {k: _coerce(v, hints[k], f"{name}.{k}") for k, v in section.items()}
     for k, v in kwargs.items():

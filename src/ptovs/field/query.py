@@ -236,9 +236,14 @@ def check_vocabulary(encoder: Encoder, phrases: list[str]) -> None:
         return
     unknown = [p for p in phrases if not knows(p)]
     if unknown:
-        vocab = ", ".join(repr(p) for p in encoder.phrases)  # type: ignore[attr-defined]
+        import difflib
+
+        phrases = list(encoder.phrases)  # type: ignore[attr-defined]
+        vocab = ", ".join(repr(p) for p in phrases)
+        near = difflib.get_close_matches(unknown[0], phrases, n=1)
+        hint = f" (did you mean {near[0]!r}?)" if near else ""
         raise InputError(
-            f"query: {unknown} not in the synthetic scene's vocabulary "
+            f"query: {unknown} not in the synthetic scene's vocabulary{hint} "
             f"(synthetic/vocabulary.json: {vocab}, plus the generic phrases); the "
             "stand-in encoder knows only those. Real scenes use OpenCLIP, which "
             "takes any text."
