@@ -6,6 +6,7 @@
 #   make bench-upstream  issue 40's one-off comparisons (segmenters; old and truth front ends)
 #   make bench-standin   the stand-in's failure profile against CLIP's (calibration seeds)
 #   make bench-multiapp  the paper's multi-appearance claim in stand-in 2's world (fresh seeds)
+#   make bench-growth  each stage's time, memory and quality at 100-763 photos (landmark)
 #   make -j3 all       every scene under DATA in parallel, stages in order, then the
 #                      per-scene table (a failing scene is marked, the others go on)
 #   make cluster       the same through Snakemake: PROFILE=local (default) or slurm
@@ -57,7 +58,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # Gaussians, 2.5 %, at relevancy score 0.477 on 2026-11-26's machine)
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo view test system-deps test-slurm lint format bench bench-accuracy bench-upstream bench-standin bench-multiapp check-readme all cluster scenes table status clean-work $(SCENES)
+.PHONY: setup demo view test system-deps test-slurm lint format bench bench-accuracy bench-upstream bench-standin bench-multiapp bench-growth check-readme all cluster scenes table status clean-work $(SCENES)
 
 setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml
@@ -142,6 +143,9 @@ bench: setup
 		--variant delta:appearance=delta-sh,color_map=false --variant shading:appearance=shading,color_map=false
 	$(BIN)/python bench/reconstruct.py --parts photos --seeds 0 --data $(QDATA) --work $(QWORK)/appearance \
 		--artifact "0:$$(ls $(QWORK)/appearance/variants/delta/bench_s0/reconstruct/*.h5 | head -1)"
+	$(BIN)/python bench/threads.py --preset small --seed 0 --threads 1 2 \
+		--set reconstruct.iterations=500 --work $(QWORK)/threads
+	$(MAKE) bench-growth
 
 # the accuracy instrument (issue 20): ACC_SEEDS seeds of the `small` preset, every
 # variant, ceilings, cluster-bootstrap CIs; dev = the first half of the seeds, test
@@ -167,6 +171,14 @@ MULTIAPP_LABELS ?= male no-multi-appearance langsplat 2d ideal-novel
 bench-multiapp: setup
 	$(BIN)/python bench/accuracy.py --preset small --standin 2 --seeds 100-117 --dev 100-108 \
 	  --data $(QDATA)/accuracy-v2 --work $(QWORK)/accuracy-v2 --labels $(MULTIAPP_LABELS)
+
+# how each stage's time, peak RSS and output quality grow with the collection (issue
+# 43 item 2): the landmark world at 100, 200, 400 and 763 photos, one size at a time,
+# the default chain on 2 threads; scenes under $(WORK)/growth/data, results in
+# $(WORK)/growth/growth.json, the plot in docs/img/growth.png
+bench-growth: setup
+	$(BIN)/python bench/growth.py --preset landmark --seed 0 --photos 100 200 400 763 \
+	  --threads 2 --work $(QWORK)/growth --plot
 
 # the one-off comparisons of issue 40, on the instrument's scenes and cache: the
 # segmenter sweep on dev and the three segmenters on test; the old front end and
