@@ -113,8 +113,9 @@ def main() -> int:
                                   text=True)  # fmt: skip
             rc, out = proc.returncode, proc.stdout + proc.stderr
         secs = time.perf_counter() - t0
-        rows.append((line, str(rc), f"{secs:.0f}"))
-        print(f"{'ok ' if rc == 0 else 'FAIL'} {secs:7.0f} s  {line}", flush=True)
+        ran = shlex.join(argv)
+        rows.append((ran, str(rc), f"{secs:.0f}"))
+        print(f"{'ok ' if rc == 0 else 'FAIL'} {secs:7.0f} s  {ran}", flush=True)
         if rc != 0:
             failed = True
             print(out[-3000:], flush=True)
