@@ -145,6 +145,8 @@ bench: setup
 		--artifact "0:$$(ls $(QWORK)/appearance/variants/delta/bench_s0/reconstruct/*.h5 | head -1)"
 	$(BIN)/python bench/threads.py --preset small --seed 0 --threads 1 2 \
 		--set reconstruct.iterations=500 --work $(QWORK)/threads
+	$(BIN)/python bench/openclip_cpu.py --real $(REAL) --photos 3 --threads 1 2 --batch 1 16 64 \
+		--repeats 3 --out $(QWORK)/openclip_cpu.json
 	$(MAKE) bench-growth
 
 # the accuracy instrument (issue 20): ACC_SEEDS seeds of the `small` preset, every
