@@ -53,7 +53,9 @@ def test_build_config_and_sets():
     cfg = build_config(Cfg, sets["unc"], "unc")
     assert cfg == Cfg(tau=0.85, levels=(1, 2), mode="code")
     assert build_config(Cfg, {"tau": 1}, "unc").tau == 1.0  # int → float
-    with pytest.raises(InputError, match="unknown key.*valid keys"):
+    with pytest.raises(
+        InputError, match="has no key .tua. .did you mean .tau.*valid keys"
+    ):
         build_config(Cfg, {"tua": 0.5}, "unc")
     with pytest.raises(InputError, match="expected a number"):
         build_config(Cfg, {"tau": "high"}, "unc")
