@@ -64,9 +64,19 @@ def photos(tmp_path_factory) -> tuple[Path, dict]:
 
 @pytest.fixture(scope="module")
 def posed(photos, tmp_path_factory):
+    """SfM of the photo walk on one thread (`ptovs --threads 1`): COLMAP's threads
+    order their work freely, and under the suite's load one run in many placed a
+    camera far off; one thread gives the same model every run."""
+    import torch
+
     data, truth = photos
     work = tmp_path_factory.mktemp("work")
-    out = posed_scene(photo_dir(data), "landmark", work, SfmConfig())
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        out = posed_scene(photo_dir(data), "landmark", work, SfmConfig())
+    finally:
+        torch.set_num_threads(before)
     return out, work
 
 

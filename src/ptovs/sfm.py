@@ -474,6 +474,15 @@ def sfm_tips(config: SfmConfig, pairing: str = "") -> list[str]:
     return tips
 
 
+def sfm_threads() -> int:
+    """COLMAP's threads: the process's thread count (`ptovs --threads`, which sets
+    torch's), at most 8. One thread makes SfM repeatable run to run; more let
+    COLMAP's parallel matching and bundle adjustment order their work freely."""
+    import torch
+
+    return max(1, min(torch.get_num_threads(), os.cpu_count() or 1, 8))
+
+
 def run_sfm(photo_folder: Path, workdir: Path, config: SfmConfig) -> dict[str, Any]:
     """Pose the photos; returns the report and the paths of the undistorted model.
 
@@ -497,7 +506,7 @@ def run_sfm(photo_folder: Path, workdir: Path, config: SfmConfig) -> dict[str, A
             f"SfM needs at least {MIN_REGISTERED} overlapping photos"
         )
     db = workdir / "database.db"
-    n_threads = min(os.cpu_count() or 1, 8)
+    n_threads = sfm_threads()
     _extract_features(db, staged, names, config, n_threads)
     if config.repeat_threshold > 0:
         before, after = _drop_repeated_features(db, config.repeat_threshold)
