@@ -177,7 +177,7 @@ bench-multiapp: setup
 # how each stage's time, peak RSS and output quality grow with the collection (issue
 # 43 item 2): the landmark world at 100, 200, 400 and 763 photos, one size at a time,
 # the default chain on 2 threads; scenes under $(WORK)/growth/data, results in
-# $(WORK)/growth/growth.json, the plot in docs/img/growth.png
+# $(WORK)/growth/growth.json, the plot beside it (published under docs/img with the figures)
 bench-growth: setup
 	$(BIN)/python bench/growth.py --preset landmark --seed 0 --photos 100 200 400 763 \
 	  --threads 2 --work $(QWORK)/growth --plot

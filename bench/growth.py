@@ -50,7 +50,8 @@ tables: the scenes; a row a stage (and the chain's total), per size its seconds,
 MB and quality figure, then the exponent b of a·x^b fitted by least squares on log-log
 to wall time and to peak RSS, x the photos (over the sizes of one preset) and the total
 train pixels (over every size). `--plot` draws time and peak RSS against photos,
-log-log, a line a stage, to docs/img/growth.png (`--plot-to PATH` elsewhere).
+log-log, a line a stage, to <work>/growth.png (`--plot-to PATH` elsewhere; the
+published one goes under docs/img with its figures).
 """
 
 from __future__ import annotations
@@ -68,18 +69,21 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import ROOT  # noqa: E402  (same folder)
 from threads import (  # noqa: E402  (same folder)
-    SAME_MACHINE,
-    SECTIONS,
+    PRESETS,
+    add_run_options,
+    check_run_options,
+    earlier_runs,
     fmt_s,
     machine_facts,
     ok,
     run_stage,
     stage_command,
+    thread_env,
+    write_results,
 )
 
 from ptovs.pipeline import PIPELINE  # noqa: E402  (stdlib only: torch stays out)
 
-PRESETS = ("tiny", "small", "bench", "landmark", "scale")
 # an earlier growth.json's runs are kept when these (and the CPU) are the same
 SAME = ("seed", "set", "config", "threads", "stages")
 QUALITY = {
@@ -92,7 +96,6 @@ QUALITY = {
     "train-ae": ("held-out cos", "train-ae artifact metrics_json['heldout_cos']"),
     "evaluate": ("mIoU", "<work>/<scene>/<scene>/evaluate.json results[*][scene]['miou']"),
 }  # fmt: skip
-DEFAULT_PLOT = ROOT / "docs" / "img" / "growth.png"
 
 
 # ------------------------------------------------- measured in a separate process
@@ -545,37 +548,23 @@ def main() -> None:
                    metavar="[PRESET:]N", help="train photos a size")  # fmt: skip
     p.add_argument("--threads", type=int, default=os.cpu_count() or 1)
     p.add_argument("--work", type=Path, default=ROOT / "work" / "growth")
-    p.add_argument("--data", type=Path, default=None,
-                   help="where the scenes are generated (default <work>/data)")  # fmt: skip
-    p.add_argument("--config", type=Path, default=ROOT / "configs" / "default.toml",
-                   help="the --config every stage gets (make all's default)")  # fmt: skip
-    p.add_argument("--set", action="append", default=[], metavar="STAGE.KEY=VALUE",
-                   help="passed to every stage's command (repeatable)")  # fmt: skip
-    p.add_argument("--timeout", type=float, default=None,
-                   help="wall budget of the whole run, s: the rest is skipped")  # fmt: skip
+    add_run_options(p, "scenes are")
     p.add_argument("--plot", action="store_true",
-                   help=f"draw the plot to {DEFAULT_PLOT.relative_to(ROOT)}")  # fmt: skip
+                   help="draw the plot to <work>/growth.png")  # fmt: skip
     p.add_argument("--plot-to", type=Path, default=None, metavar="PATH",
                    help="draw the plot to PATH instead (implies --plot)")  # fmt: skip
     p.add_argument("--report-only", action="store_true",
                    help="run nothing: the tables (and plot) of <work>/growth.json")  # fmt: skip
     args = p.parse_args()
-    for item in args.set:
-        section, dot, _ = item.partition("=")[0].partition(".")
-        if "=" not in item or not dot or section not in SECTIONS:
-            p.error(f"--set {item!r}: write STAGE.KEY=VALUE, STAGE one of "
-                    + ", ".join(SECTIONS))  # fmt: skip
+    check_run_options(p, args)
     try:
         todo = sizes(args.preset, args.photos)
     except ValueError as exc:
         p.error(f"--photos {' '.join(args.photos)}: {exc} (give N or PRESET:N)")
     if args.threads < 1:
         p.error("--threads: at least 1")
-    args.work = args.work.resolve()
-    args.data = (args.data or args.work / "data").resolve()
-    args.config = args.config.resolve()
     path = args.work / "growth.json"
-    plot_to = args.plot_to or (DEFAULT_PLOT if args.plot else None)
+    plot_to = args.plot_to or (args.work / "growth.png" if args.plot else None)
 
     if args.report_only:
         if not path.exists():
@@ -586,8 +575,6 @@ def main() -> None:
             plot(results, plot_to)
         return
 
-    from ptovs.atomic import atomic_file
-
     args.work.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     deadline = None if args.timeout is None else t_start + args.timeout
@@ -597,25 +584,20 @@ def main() -> None:
                "stages": list(PIPELINE),
                "quality": {s: f"{q}: {src}" for s, (q, src) in QUALITY.items()},
                "runs": {}}  # fmt: skip
-    if path.exists():  # an earlier run of the same setup keeps its other sizes
-        old = json.loads(path.read_text())
-        if all(old.get(k) == results[k] for k in SAME) and all(
-            old.get("machine", {}).get(k) == facts[k] for k in SAME_MACHINE
-        ):
-            results["runs"] = old.get("runs", {})
-        else:
-            print(f"{path}: another setup (seed, --set, config, threads or CPU): "
-                  "its runs are dropped", file=sys.stderr)  # fmt: skip
+    old = earlier_runs(path, results, SAME)
+    if old:  # an earlier run of the same setup keeps its other sizes
+        results["runs"] = old.get("runs", {})
+    elif path.exists():
+        print(f"{path}: another setup (seed, --set, config, threads or CPU): "
+              "its runs are dropped", file=sys.stderr)  # fmt: skip
 
     def save() -> None:
-        with atomic_file(path, keep_suffix=False) as tmp:
-            tmp.write_text(json.dumps(results, indent=1))
+        write_results(path, results)
 
     cpus = os.cpu_count() or 1
     if args.threads > cpus:
         print(f"note: {args.threads} threads on {cpus} CPUs", file=sys.stderr)
-    env = {k: v for k, v in os.environ.items() if k != "PTOVS_THREADS"}
-    env["OMP_NUM_THREADS"] = str(args.threads)
+    env = thread_env(args.threads)
     args.data.mkdir(parents=True, exist_ok=True)
     going = True
     for preset, photos in todo:

@@ -56,6 +56,7 @@ from common import ROOT, machine  # noqa: E402  (same folder)
 from ptovs.pipeline import PIPELINE  # noqa: E402  (stdlib only: torch stays out)
 
 SECTIONS = ("scene", *PIPELINE)  # what a --set item may name
+PRESETS = ("tiny", "small", "bench", "landmark", "scale")  # synth-scene's
 # an earlier threads.json's runs are kept when these (and the CPU) are the same
 SAME = ("preset", "seed", "set", "config", "stages")
 SAME_MACHINE = ("cpu_model", "cpu_count")
@@ -215,24 +216,20 @@ def print_tables(runs: dict[str, dict]) -> None:
     print(flush=True)
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--preset", choices=["tiny", "small", "bench", "scale"],
-                   default="small")  # fmt: skip
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, nargs="+", default=[1, 2, 4, 8, 16])
-    p.add_argument("--work", type=Path, default=ROOT / "work" / "threads")
+def add_run_options(p: argparse.ArgumentParser, what: str = "scene") -> None:
+    """The options every chain benchmark takes (this one and bench/growth.py)."""
     p.add_argument("--data", type=Path, default=None,
-                   help="where the scene is generated (default <work>/data)")  # fmt: skip
+                   help=f"where the {what} generated (default <work>/data)")  # fmt: skip
     p.add_argument("--config", type=Path, default=ROOT / "configs" / "default.toml",
                    help="the --config every stage gets (make all's default)")  # fmt: skip
     p.add_argument("--set", action="append", default=[], metavar="STAGE.KEY=VALUE",
                    help="passed to every stage's command (repeatable)")  # fmt: skip
     p.add_argument("--timeout", type=float, default=None,
                    help="wall budget of the whole run, s: the rest is skipped")  # fmt: skip
-    args = p.parse_args()
-    t_start = time.perf_counter()
-    deadline = None if args.timeout is None else t_start + args.timeout
+
+
+def check_run_options(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse a malformed --set item; make the paths absolute."""
     for item in args.set:
         section, dot, _ = item.partition("=")[0].partition(".")
         if "=" not in item or not dot or section not in SECTIONS:
@@ -241,26 +238,60 @@ def main() -> None:
     args.work = args.work.resolve()
     args.data = (args.data or args.work / "data").resolve()
     args.config = args.config.resolve()
-    args.work.mkdir(parents=True, exist_ok=True)
 
+
+def earlier_runs(path: Path, results: dict, same: tuple[str, ...]) -> dict | None:
+    """An earlier results file at `path`, when it measured the same setup (`same`
+    keys of `results`) on the same CPU; else None."""
+    if not path.exists():
+        return None
+    old = json.loads(path.read_text())
+    if all(old.get(k) == results[k] for k in same) and all(
+        old.get("machine", {}).get(k) == results["machine"][k] for k in SAME_MACHINE
+    ):
+        return old
+    return None
+
+
+def write_results(path: Path, results: dict) -> None:
     from ptovs.atomic import atomic_file
+
+    with atomic_file(path, keep_suffix=False) as tmp:
+        tmp.write_text(json.dumps(results, indent=1))
+
+
+def thread_env(n: int) -> dict:
+    """The stages' environment at `n` threads (OpenMP's count; --threads sets torch's)."""
+    env = {k: v for k, v in os.environ.items() if k != "PTOVS_THREADS"}
+    env["OMP_NUM_THREADS"] = str(n)
+    return env
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--preset", choices=PRESETS, default="small")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, nargs="+", default=[1, 2, 4, 8, 16])
+    p.add_argument("--work", type=Path, default=ROOT / "work" / "threads")
+    add_run_options(p, "scene is")
+    args = p.parse_args()
+    t_start = time.perf_counter()
+    deadline = None if args.timeout is None else t_start + args.timeout
+    check_run_options(p, args)
+    args.work.mkdir(parents=True, exist_ok=True)
 
     path = args.work / "threads.json"
     facts = machine_facts()
     results = {"machine": facts, "preset": args.preset, "seed": args.seed,
                "set": list(args.set), "config": str(args.config),
                "stages": list(PIPELINE), "runs": {}, "skipped": {}}  # fmt: skip
-    if path.exists():  # an earlier run of the same setup keeps its other thread counts
-        old = json.loads(path.read_text())
-        if all(old.get(k) == results[k] for k in SAME) and all(
-            old.get("machine", {}).get(k) == facts[k] for k in SAME_MACHINE
-        ):
-            results["runs"] = old.get("runs", {})
-            results["total_s"] = old.get("total_s", {})
+    old = earlier_runs(path, results, SAME)
+    if old:  # an earlier run of the same setup keeps its other thread counts
+        results["runs"] = old.get("runs", {})
+        results["total_s"] = old.get("total_s", {})
 
     def save() -> None:
-        with atomic_file(path, keep_suffix=False) as tmp:
-            tmp.write_text(json.dumps(results, indent=1))
+        write_results(path, results)
 
     cpus = os.cpu_count() or 1
     counts = []
@@ -282,8 +313,7 @@ def main() -> None:
         shutil.rmtree(work, ignore_errors=True)
         logs = work / "logs"
         logs.mkdir(parents=True)
-        env = {k: v for k, v in os.environ.items() if k != "PTOVS_THREADS"}
-        env["OMP_NUM_THREADS"] = str(n)
+        env = thread_env(n)
         t0, stop = time.perf_counter(), ""
         for stage in PIPELINE:
             left = None if deadline is None else deadline - time.perf_counter()
