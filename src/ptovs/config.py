@@ -90,15 +90,24 @@ def parse_sets(items: Iterable[str], section: str | None = None) -> dict[str, An
     return out
 
 
+def did_you_mean(name: str, choices: Iterable[str], fmt: str = "{!r}") -> str:
+    """ " (did you mean X?)" for the nearest of `choices`, or ""."""
+    import difflib
+
+    near = difflib.get_close_matches(name, list(choices), n=1)
+    return f" (did you mean {fmt.format(near[0])}?)" if near else ""
+
+
 def _sections_with(key: str, value: str) -> str:
     """Advice for a key given without its section: the sections that have it."""
     from ptovs.stage import config_sections
 
-    have = [name for name, keys in config_sections().items() if key in keys]
+    sections = config_sections()
+    have = [name for name, keys in sections.items() if key in keys]
     if not have:
         import difflib
 
-        every = [f"{n}.{k}" for n, keys in config_sections().items() for k in keys]
+        every = [f"{n}.{k}" for n, keys in sections.items() for k in keys]
         near = difflib.get_close_matches(key, [e.split(".", 1)[1] for e in every], 3)
         hint = [e for e in every if e.split(".", 1)[1] in near][:3]
         return f"no section has a key {key!r}" + (
@@ -243,12 +252,9 @@ def build_config(cls: type, section: Mapping[str, Any] | None, name: str) -> Any
     known = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(section) - known)
     if unknown:
-        import difflib
-
-        near = difflib.get_close_matches(unknown[0], sorted(known), n=1)
-        hint = f" (did you mean {near[0]!r}?)" if near else ""
         raise InputError(
-            f"[{name}] has no key {unknown[0]!r}{hint}; valid keys: "
+            f"[{name}] has no key {unknown[0]!r}{did_you_mean(unknown[0], sorted(known))}"
+            "; valid keys: "
             f"{', '.join(sorted(known))}"
         )
     kwargs = {k: _coerce(v, hints[k], f"{name}.{k}") for k, v in section.items()}

@@ -43,7 +43,13 @@ from ptovs.artifacts import (
     provenance,
     write_atomic,
 )
-from ptovs.config import build_config, canonical_json, merge, parse_sets
+from ptovs.config import (  # did_you_mean: also ptovs.stage's, for the CLI
+    build_config,
+    canonical_json,
+    did_you_mean,
+    merge,
+    parse_sets,
+)
 from ptovs.errors import InputError, MissingInputError
 from ptovs.pipeline import PIPELINE  # the chain, in order (one list for every driver)
 
@@ -151,31 +157,36 @@ def get_stage(name: str) -> StageSpec:
     return REGISTRY[name]
 
 
-def did_you_mean(name: str, choices: Iterable[str], fmt: str = "{!r}") -> str:
-    """ " (did you mean X?)" for the nearest of `choices`, or ""."""
-    import difflib
+def config_class(name: str) -> type:
+    """The config dataclass of section `name`: [scene], [sfm] or a stage's."""
+    if name == SCENE:
+        return SceneConfig
+    if name == SFM:
+        from ptovs.sfm import SfmConfig
 
-    near = difflib.get_close_matches(name, list(choices), n=1)
-    return f" (did you mean {fmt.format(near[0])}?)" if near else ""
+        return SfmConfig
+    return get_stage(name).config_cls
+
+
+def section_names() -> list[str]:
+    """Every config section, in the order messages list them."""
+    return list(dict.fromkeys([SCENE, *STAGE_MODULES, *REGISTRY]))
+
+
+def config_keys(name: str) -> list[str]:
+    return [f.name for f in dataclasses.fields(config_class(name))]
 
 
 def config_sections() -> dict[str, list[str]]:
-    """Every config section and its keys: [scene], [sfm] and each stage's."""
-    from ptovs.sfm import SfmConfig
-
-    out = {SCENE: [f.name for f in dataclasses.fields(SceneConfig)],
-           SFM: [f.name for f in dataclasses.fields(SfmConfig)]}  # fmt: skip
-    for name in dict.fromkeys([*STAGE_MODULES, *REGISTRY]):
-        if name not in out:
-            out[name] = [f.name for f in dataclasses.fields(get_stage(name).config_cls)]
-    return out
+    """Every config section and its keys (imports every stage's module)."""
+    return {name: config_keys(name) for name in section_names()}
 
 
 def check_config(config: Mapping[str, Any], origin: str = "the config") -> None:
     """Every section and key of a merged config (`--config` file plus the group's
     `--set` items), checked before anything runs: an unknown section or key, or a
     value of the wrong type, is an InputError with the nearest valid name."""
-    sections = list(dict.fromkeys([SCENE, *STAGE_MODULES, *REGISTRY]))
+    sections = section_names()
     for name, section in config.items():
         if name not in sections:
             raise InputError(
@@ -187,13 +198,7 @@ def check_config(config: Mapping[str, Any], origin: str = "the config") -> None:
             raise InputError(
                 f"{origin}: [{name}] must be a table of KEY = VALUE, got {section!r}"
             )
-        if name == SCENE:
-            cls = SceneConfig
-        elif name == SFM:
-            from ptovs.sfm import SfmConfig as cls
-        else:
-            cls = get_stage(name).config_cls
-        keys = [f.name for f in dataclasses.fields(cls)]
+        keys = config_keys(name)
         for key in section:
             if key not in keys:
                 raise InputError(
@@ -201,7 +206,7 @@ def check_config(config: Mapping[str, Any], origin: str = "the config") -> None:
                     + did_you_mean(key, keys)
                     + f"; valid keys: {', '.join(sorted(keys))}"
                 )
-        build_config(cls, section, name)  # the values' types
+        build_config(config_class(name), section, name)  # the values' types
 
 
 @dataclass

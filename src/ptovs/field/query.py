@@ -236,12 +236,11 @@ def check_vocabulary(encoder: Encoder, phrases: list[str]) -> None:
         return
     unknown = [p for p in phrases if not knows(p)]
     if unknown:
-        import difflib
+        from ptovs.config import did_you_mean
 
         phrases = list(encoder.phrases)  # type: ignore[attr-defined]
         vocab = ", ".join(repr(p) for p in phrases)
-        near = difflib.get_close_matches(unknown[0], phrases, n=1)
-        hint = f" (did you mean {near[0]!r}?)" if near else ""
+        hint = did_you_mean(unknown[0], phrases)
         raise InputError(
             f"query: {unknown} not in the synthetic scene's vocabulary{hint} "
             f"(synthetic/vocabulary.json: {vocab}, plus the generic phrases); the "

@@ -95,15 +95,15 @@ def jpeg_truncated(path: Path) -> bool:
 _warned_alpha: set[str] = set()
 
 
-def report_alpha(path: Path | str, alpha: np.ndarray) -> bool:
+def report_alpha(path: Path | str, alpha: np.ndarray) -> None:
     """Say (once a file) that a photo's transparency is not used: ptovs reads the
     colour stored under transparent pixels as if it were seen. An opaque alpha
-    channel is silent. Returns whether the photo has transparent pixels."""
+    channel is silent."""
+    if str(path) in _warned_alpha:
+        return
     full = np.iinfo(alpha.dtype).max if alpha.dtype.kind in "ui" else 1.0
     clear = alpha < full
-    if not clear.any():
-        return False
-    if str(path) not in _warned_alpha:
+    if clear.any():
         _warned_alpha.add(str(path))
         logger.warning(
             "image %s has transparent pixels (%.0f %% of it); ptovs reads RGB only, "
@@ -113,7 +113,6 @@ def report_alpha(path: Path | str, alpha: np.ndarray) -> bool:
             path,
             100 * float(clear.mean()),
         )
-    return True
 
 
 def load_image(view: Any) -> np.ndarray:  # view: a ptovs.scene.View
