@@ -5,7 +5,8 @@ names (`data/bench_s1`, ...) its phrases, views and style candidates exist. The
 scenes are planned, not rendered (`plan_scene`: the same world, cameras and
 vocabulary `synth-scene` writes), so the check costs seconds. Lines with a
 placeholder (`<stage>`, `NAME`) are templates and are skipped; `[...]` marks an
-optional part, which is checked too.
+optional part, which is checked too unless it holds a placeholder (`[--image
+IMAGE]`). The lines are read as `make check-readme` (tools/check_readme.py) reads them.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import functools
 import re
 import shlex
 import subprocess
+import sys
 import warnings
 from pathlib import Path
 
@@ -24,20 +26,17 @@ from ptovs.cli import main
 from ptovs.config import parse_sets
 from ptovs.stage import check_config
 
-README = Path(__file__).resolve().parents[1] / "README.md"
-PLACEHOLDERS = re.compile(r"<[a-z]+>|\bNAME\b|\bDIR\b|\bIMAGE\b|key=value")
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+sys.path.insert(0, str(ROOT / "tools"))
+from check_readme import BLOCKS, as_written, readme_lines  # noqa: E402  (make check-readme's)
 
 
 def readme_commands() -> list[list[str]]:
-    """The argv of each `ptovs` line in the README's ```bash blocks."""
-    out = []
-    for block in re.findall(r"```bash\n(.*?)```", README.read_text(), re.S):
-        for line in block.replace("\\\n", " ").splitlines():
-            words = shlex.split(line, comments=True)
-            if not words or words[0] != "ptovs" or PLACEHOLDERS.search(line):
-                continue
-            out.append([w.strip("[]") for w in words[1:] if w.strip("[]")])
-    return out
+    """The argv of each `ptovs` line in the README's ```bash blocks, as
+    `make check-readme` runs it (optional parts with a placeholder dropped;
+    template lines, `<stage>`, skipped)."""
+    return [argv[1:] for line in readme_lines() if (argv := as_written(line))]
 
 
 COMMANDS = readme_commands()
@@ -47,7 +46,7 @@ def readme_make_lines() -> list[list[str]]:
     """The argv of each `make` in the README's ```bash blocks (`a && b`: both);
     lines naming a path the user supplies (/path/to, /cluster) are templates."""
     out = []
-    for block in re.findall(r"```bash\n(.*?)```", README.read_text(), re.S):
+    for block in BLOCKS.findall(README.read_text()):
         for line in block.replace("\\\n", " ").splitlines():
             if "/path/to" in line or "/cluster" in line:
                 continue

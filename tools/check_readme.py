@@ -32,12 +32,13 @@ ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 SYNTHETIC = re.compile(r"\bdata/(tiny|small|bench)_s\d+\b|\bsynth-scene data\b")
 TEMPLATE = re.compile(r"<[a-z]+>|\bNAME\b|\bDIR\b|\bIMAGE\b|key=value")
+BLOCKS = re.compile(r"```bash\n(.*?)```", re.S)  # the README's command blocks
 
 
 def readme_lines() -> list[str]:
     """Each `ptovs` command line of the README's bash blocks, comments removed."""
     out = []
-    for block in re.findall(r"```bash\n(.*?)```", README.read_text(), re.S):
+    for block in BLOCKS.findall(README.read_text()):
         for line in block.replace("\\\n", " ").splitlines():
             words = shlex.split(line, comments=True)
             if words and words[0] == "ptovs":
