@@ -305,16 +305,14 @@ def synth_scene(
     import time
 
     from ptovs.synthetic import generate_scene
+    from ptovs.synthetic.generate import PhotoCountError
 
     t0 = time.perf_counter()
     try:
         scene_dir = generate_scene(out, preset=preset, seed=seed, name=name,
                                    standin=int(standin), photos=photos)  # fmt: skip
-    except ValueError as exc:
-        if "--photos" not in str(exc):
-            raise
-        raise click.BadParameter(str(exc).split(": ", 1)[1],
-                                 param_hint="--photos") from None  # fmt: skip
+    except PhotoCountError as exc:
+        raise click.BadParameter(str(exc), param_hint="--photos") from None
     click.echo(f"wrote {scene_dir} ({time.perf_counter() - t0:.1f} s)")
 
 

@@ -691,6 +691,10 @@ def plan_scene(preset: str, seed: int, standin: int = 1) -> ScenePlan:
     )
 
 
+class PhotoCountError(ValueError):
+    """`--photos N` outside what the preset holds (the message says the range)."""
+
+
 def photo_subset(plan: ScenePlan, preset: str, photos: int | None) -> list[int]:
     """The images a scene of `photos` train photos keeps, as indices into the plan:
     every test and evaluation view, then the other train views in order. So the
@@ -702,8 +706,8 @@ def photo_subset(plan: ScenePlan, preset: str, photos: int | None) -> list[int]:
         return list(range(n_img))
     evals = [i for i in plan.eval_ids if i not in plan.test_ids]
     if not len(evals) <= photos <= cfg.n_train:
-        raise ValueError(
-            f"--photos {photos}: preset {preset!r} takes {len(evals)} to "
+        raise PhotoCountError(
+            f"preset {preset!r} takes {len(evals)} to "
             f"{cfg.n_train} train photos (its {len(evals)} labelled views are train "
             "photos)"
         )
