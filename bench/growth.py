@@ -76,6 +76,7 @@ from threads import (  # noqa: E402  (same folder)
     fmt_s,
     machine_facts,
     ok,
+    report_stage,
     run_stage,
     stage_command,
     thread_env,
@@ -284,12 +285,7 @@ def run_size(args, results, save, preset: str, photos: int, env: dict,
             rec.update({f"quality_{k}": v for k, v in q.items()})
         save()
         qtxt = f"  {QUALITY[stage][0]} {fmt_q(stage, rec)}" if stage in QUALITY else ""
-        print(f"{name}  {stage:<20} {fmt_s(rec):>12}{' s' if ok(rec) else ''}"
-              f"  {rec['peak_rss_mb']:7.0f} MB{qtxt}", file=sys.stderr, flush=True)  # fmt: skip
-        if rec["exit"] != 0:
-            stop = ("the --timeout budget ran out" if rec.get("timeout")
-                    else f"{stage} failed")  # fmt: skip
-            print(rec["stderr_tail"][-1500:], file=sys.stderr)
+        stop = report_stage(name, stage, rec, qtxt)
     run["total_s"] = round(time.perf_counter() - t0, 1)
     save()
     return not stop.startswith("the --timeout")

@@ -216,6 +216,17 @@ def print_tables(runs: dict[str, dict]) -> None:
     print(flush=True)
 
 
+def report_stage(label: str, stage: str, rec: dict, extra: str = "") -> str:
+    """Print a stage's line (and the tail of its stderr when it failed); returns
+    why the chain stops there ("" when it went on)."""
+    print(f"{label}  {stage:<20} {fmt_s(rec):>12}{' s' if ok(rec) else ''}"
+          f"  {rec['peak_rss_mb']:7.0f} MB{extra}", file=sys.stderr, flush=True)  # fmt: skip
+    if rec["exit"] == 0:
+        return ""
+    print(rec["stderr_tail"][-1500:], file=sys.stderr)
+    return "the --timeout budget ran out" if rec.get("timeout") else f"{stage} failed"
+
+
 def add_run_options(p: argparse.ArgumentParser, what: str = "scene") -> None:
     """The options every chain benchmark takes (this one and bench/growth.py)."""
     p.add_argument("--data", type=Path, default=None,
@@ -325,12 +336,7 @@ def main() -> None:
             cmd = stage_command(args, work, scene, n, stage)
             rec = runs[stage] = run_stage(cmd, env, logs, stage, left)
             save()
-            print(f"{n} threads  {stage:<20} {fmt_s(rec):>12}{' s' if ok(rec) else ''}"
-                  f"  {rec['peak_rss_mb']:7.0f} MB", file=sys.stderr, flush=True)  # fmt: skip
-            if rec["exit"] != 0:
-                stop = ("the --timeout budget ran out" if rec.get("timeout")
-                        else f"{stage} failed")  # fmt: skip
-                print(rec["stderr_tail"][-1500:], file=sys.stderr)
+            stop = report_stage(f"{n} threads", stage, rec)
         if any("skipped" not in r for r in runs.values()):
             total = round(time.perf_counter() - t0, 1)
             results.setdefault("total_s", {})[str(n)] = total
