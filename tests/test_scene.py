@@ -888,3 +888,34 @@ def test_synthetic_labels_match_truth_parts(synth):
             gt = np.isin(part_id, ids)
             iou = (mask & gt).sum() / max((mask | gt).sum(), 1)
             assert iou >= 0.98, (v.name, cat, iou)
+
+
+def test_photo_stack_holds_photos_in_half_the_bytes_within_a_65535th():
+    """reconstruct keeps every train photo in memory: 16-bit samples, read back as
+    float32 within 0.5/65535 of the decoded values (hard cases: 0, 1, 8-bit steps)."""
+    from ptovs.scene import PhotoStack
+
+    rng = np.random.default_rng(3)
+    photos = [
+        rng.random((7, 5, 3), dtype=np.float32),
+        np.zeros((2, 3, 3), np.float32),
+        np.ones((1, 1, 3), np.float32),
+        (np.arange(256, dtype=np.float32) / 255.0).repeat(3).reshape(16, 16, 3),
+    ]
+    stack = PhotoStack(photos)
+    assert len(stack) == 4
+    assert stack.shapes == [(7, 5, 3), (2, 3, 3), (1, 1, 3), (16, 16, 3)]
+    assert stack.nbytes * 2 == sum(p.nbytes for p in photos)
+    for k, p in enumerate(photos):
+        got = stack[k]
+        assert got.dtype == np.float32 and got.shape == p.shape
+        assert np.abs(got.astype(np.float64) - p).max() <= 0.5 / 65535 + 1e-7
+    assert stack[-1][0, 0, 0] == 0.0 and stack[2].max() == 1.0
+    assert len(stack[1:3]) == 2
+    with pytest.raises(ValueError, match="finite and in"):
+        PhotoStack([np.full((2, 2, 3), np.nan, np.float32)])
+    with pytest.raises(ValueError, match="finite and in"):
+        PhotoStack([np.full((2, 2, 3), 1.5, np.float32)])
+    with pytest.raises(ValueError, match=r"\[H, W, 3\]"):
+        PhotoStack([np.zeros((2, 2), np.float32)])
+    assert len(PhotoStack([])) == 0

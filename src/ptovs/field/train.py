@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -179,7 +179,8 @@ def gaussian_budget(cfg: Any, images: list[np.ndarray]) -> int:
     per_mpx = float(getattr(cfg, "gaussians_per_mpx", 0.0) or 0.0)
     if per_mpx <= 0:
         return int(cfg.max_gaussians)
-    mpx = sum(int(im.shape[0]) * int(im.shape[1]) for im in images) / 1e6
+    shapes = getattr(images, "shapes", None) or [im.shape for im in images]
+    mpx = sum(int(h) * int(w) for h, w, *_ in shapes) / 1e6
     budget = int(min(cfg.max_gaussians, max(1, round(per_mpx * mpx))))
     if budget < cfg.max_gaussians:
         log.info(
@@ -201,7 +202,7 @@ def view_order(step: int, n: int, seed: int) -> int:
 
 def train(
     cfg: Any,
-    images: list[np.ndarray],  # train images [H, W, 3] float32
+    images: Sequence[np.ndarray],  # train images [H, W, 3] float32 on access
     cams: list[Camera],
     points: tuple[np.ndarray, np.ndarray],  # xyz [P, 3], rgb [P, 3] uint8
     *,
@@ -234,7 +235,6 @@ def train(
         log.info("resumed at iteration %d of %d", state.step, cfg.iterations)
     state.budget = gaussian_budget(cfg, images)
     model, nets = state.model, state.nets
-    tensors = [torch.from_numpy(np.ascontiguousarray(im)) for im in images]
     prepared = [nets.prepare(im) for im in images] if nets is not None else []
     n_views = len(images)
     bar = tqdm(
@@ -253,7 +253,8 @@ def train(
     while state.step < cfg.iterations:
         step = state.step
         i = view_order(step, n_views, cfg.seed)
-        cam, gt = cams[i], tensors[i]
+        # one photo as float32 at a time (`images` may be a 16-bit PhotoStack)
+        cam, gt = cams[i], torch.from_numpy(np.ascontiguousarray(images[i]))
         model.set_means_lr(step, cfg.iterations)
         degree = min(cfg.sh_degree, step // cfg.sh_increase_every)
         masked = nets is not None and step >= cfg.mask_warmup

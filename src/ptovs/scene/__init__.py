@@ -53,6 +53,7 @@ from __future__ import annotations
 from ptovs.scene.colmap import DISTORTION_MODES, MODEL_FILES, PINHOLE_MODELS
 from ptovs.scene.images import (
     RESIZE_KINDS,
+    PhotoStack,
     check_size,
     jpeg_truncated,
     load_image,
@@ -76,6 +77,7 @@ __all__ = [
     "GT_RESIZE_MODES",
     "MODEL_FILES",
     "PINHOLE_MODELS",
+    "PhotoStack",
     "RESIZE_KINDS",
     "Scene",
     "View",

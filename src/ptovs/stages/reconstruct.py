@@ -26,6 +26,7 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from ptovs.artifacts import Checkpoint, json_dataset
 from ptovs.field.losses import psnr
@@ -33,7 +34,7 @@ from ptovs.field.render import WildField
 from ptovs.field.train import train, visibility
 from ptovs.raster import VERSION as RASTER_VERSION
 from ptovs.raster import Camera, Gaussians
-from ptovs.scene import Scene
+from ptovs.scene import PhotoStack, Scene
 from ptovs.stage import scene_input, stage_command
 
 log = logging.getLogger(__name__)
@@ -132,14 +133,21 @@ def _views_and_images(scene):
     train_views = scene.train_views()
     if not train_views:
         raise ValueError(f"scene {scene.name} has no train views")
-    images = [scene.load_image(v) for v in train_views]
+    # 16-bit in memory: the one store of this stage that grows with the collection
+    images = PhotoStack(
+        scene.load_image(v)
+        for v in tqdm(
+            train_views, desc=f"{NAME} {scene.name}: photos", unit="photo",
+            disable=None, leave=False,
+        )
+    )  # fmt: skip
     cams = [Camera.from_view(v) for v in train_views]
     return train_views, images, cams
 
 
 def _trained(
     scene: Scene,
-    images: list[np.ndarray],
+    images: PhotoStack,
     cams: list[Camera],
     config: Config,
     ckpt: Checkpoint | None,
@@ -263,11 +271,12 @@ def run(
         nets.eval()
 
     # per-view outputs: embeddings of every image, transient masks of train images
-    by_name = {v.name: img for v, img in zip(train_views, images, strict=True)}
+    by_name = {v.name: k for k, v in enumerate(train_views)}
     train_names = set(by_name)
     own_psnr: dict[str, list[float]] = {"train": [], "test": []}
     for view in scene.views:
-        image = by_name[view.name] if view.name in by_name else scene.load_image(view)
+        k = by_name.get(view.name)
+        image = images[k] if k is not None else scene.load_image(view)
         cam = Camera.from_view(view)
         datasets: dict[str, Any] = {}
         if nets is not None:
