@@ -460,7 +460,7 @@ def test_landmark_preset_and_photos_make_one_world_at_any_size(tmp_path: Path) -
 
     from ptovs.cli import main
     from ptovs.scene import load_scene
-    from ptovs.synthetic.generate import photo_subset, plan_scene
+    from ptovs.synthetic.generate import PhotoCountError, photo_subset, plan_scene
 
     cfg = PRESETS["landmark"]
     assert cfg.n_train == 763 and cfg.long_side == (640, 760)
@@ -473,11 +473,27 @@ def test_landmark_preset_and_photos_make_one_world_at_any_size(tmp_path: Path) -
     assert set(plan.test_ids) | set(plan.eval_ids) <= set(small)
     assert len(small) == 24 + cfg.n_test
     assert photo_subset(plan, "landmark", None) == list(range(763 + cfg.n_test))
+    # past the preset's 763 (up to Notre-Dame's 2,934): more photos of one world,
+    # the preset's own plan unchanged
+    more = plan_scene("landmark", 0, extra=3)
+    assert more.test_ids == plan.test_ids and more.eval_ids == plan.eval_ids
+    assert more.stems[: 763 + cfg.n_test] == plan.stems
+    assert more.queries == plan.queries and more.distractor == plan.distractor
+    assert len(set(more.stems)) == len(more.stems) == 766 + cfg.n_test
+    assert photo_subset(more, "landmark", 766) == list(range(766 + cfg.n_test))
+    assert cfg.max_train == 2934
+    with pytest.raises(PhotoCountError, match="at most 2934"):
+        plan_scene("landmark", 0, extra=2934 - 763 + 1)
+    with pytest.raises(PhotoCountError, match="to 2934 train photos"):
+        photo_subset(more, "landmark", 2935)
 
     runner = CliRunner()
     res = runner.invoke(main, ["synth-scene", str(tmp_path), "--preset", "landmark",
                                "--photos", "3"])  # fmt: skip
     assert res.exit_code == 2 and "labelled views" in res.output, res.output
+    res = runner.invoke(main, ["synth-scene", str(tmp_path), "--preset", "landmark",
+                               "--photos", "2935"])  # fmt: skip
+    assert res.exit_code == 2 and "at most 2934" in res.output, res.output
     res = runner.invoke(main, ["synth-scene", str(tmp_path), "--preset", "landmark",
                                "--photos", "24"])  # fmt: skip
     assert res.exit_code == 0, res.output

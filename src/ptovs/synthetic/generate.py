@@ -97,6 +97,10 @@ class Preset:
     track_keep: float  # chance to keep a visible observation in a track
     swatch_px: int  # resolution the vocabulary swatches are rendered at
     max_cover: float = 0.4  # largest transient coverage of an image
+    max_train: int = 0
+    """The most train photos `--photos` may ask (0: n_train). Those past n_train are
+    more photos of the same world: cameras drawn as the others' (never an
+    evaluation candidate), after every photo of the preset's own plan."""
 
 
 PRESETS: dict[str, Preset] = {
@@ -154,6 +158,7 @@ PRESETS: dict[str, Preset] = {
         points_per_image=60,
         track_keep=0.1,
         swatch_px=96,
+        max_train=2934,  # Notre-Dame, PT-OVS's largest scene
     ),
     "scale": Preset(
         n_train=3000,
@@ -635,11 +640,14 @@ class ScenePlan:
     screen: dict[int, PartScreen]  # the screen's verdict on every part
 
 
-def plan_scene(preset: str, seed: int, standin: int = 1) -> ScenePlan:
+def plan_scene(preset: str, seed: int, standin: int = 1, extra: int = 0) -> ScenePlan:
     """The plan of (preset, seed): world, cameras, evaluation views, screened queries.
 
     Renders only truth maps and the screen's neutral crops, so every preset's
-    queries and labels can be checked over many seeds cheaply.
+    queries and labels can be checked over many seeds cheaply. `extra` train
+    photos past the preset's (up to its max_train) come after them, each drawn
+    from its own index's streams: the rest of the plan is the same with or
+    without them.
     """
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose from {sorted(PRESETS)}")
@@ -658,6 +666,18 @@ def plan_scene(preset: str, seed: int, standin: int = 1) -> ScenePlan:
         sample_camera(_rng(seed, 2, i), world, cfg.long_side, frontal=i in cand)
         for i in range(n_img)
     ]
+    limit = max(cfg.max_train, cfg.n_train)
+    if not 0 <= extra <= limit - cfg.n_train:
+        raise PhotoCountError(
+            f"preset {preset!r} holds at most {limit} train photos; "
+            f"{cfg.n_train + extra} asked"
+        )
+    for i in range(n_img, n_img + extra):
+        own = _rng(seed, 9, i)
+        stems.append(f"{seed:02d}{i:06d}_{int(own.integers(10**9, 10**10))}")
+        cams.append(
+            sample_camera(_rng(seed, 2, i), world, cfg.long_side, frontal=False)
+        )
     eval_ids, cand_truths = _choose_eval(world, cfg, cand, cams)
     eval_cams = [cams[i] for i in eval_ids]
     truths = [cand_truths[i] for i in eval_ids]
@@ -705,12 +725,17 @@ def photo_subset(plan: ScenePlan, preset: str, photos: int | None) -> list[int]:
     if photos is None or photos == cfg.n_train:
         return list(range(n_img))
     evals = [i for i in plan.eval_ids if i not in plan.test_ids]
-    if not len(evals) <= photos <= cfg.n_train:
+    limit = max(cfg.max_train, cfg.n_train)
+    if not len(evals) <= photos <= limit:
         raise PhotoCountError(
             f"preset {preset!r} takes {len(evals)} to "
-            f"{cfg.n_train} train photos (its {len(evals)} labelled views are train "
+            f"{limit} train photos (its {len(evals)} labelled views are train "
             "photos)"
         )
+    if photos > cfg.n_train:  # every photo of the plan, then the extra ones
+        if len(plan.cams) < n_img + photos - cfg.n_train:
+            raise ValueError("plan_scene(extra=...) planned fewer photos than asked")
+        return list(range(n_img + photos - cfg.n_train))
     keep = set(plan.test_ids) | set(evals)
     others = [i for i in range(n_img) if i not in keep]
     return sorted(keep | set(others[: photos - len(evals)]))
@@ -841,7 +866,7 @@ def generate_scene(
     truth_dir = scene / "synthetic" / "truth"
     image_dir = scene / "dense" / "images"
 
-    plan = plan_scene(preset, seed, standin)
+    plan = plan_scene(preset, seed, standin, extra=max(0, (photos or 0) - cfg.n_train))
     world, queries = plan.world, plan.queries
     eval_ids, distractor = plan.eval_ids, plan.distractor
     ids = photo_subset(plan, preset, photos)
