@@ -17,6 +17,8 @@ Parts (each from an empty work folder, default config, one after the other):
           the figures src/ptovs/pipeline.py's RESOURCES come from
   paper   no run: the seven PT-OVS scenes on a 16-node cluster from `stages` and
           bench/extract_gpu.py's per-photo backend cost (the model is in paper_part)
+  growth  no run: the same from each stage's measured growth at a real photo size
+          (bench/growth.py's results, copied to <work>/growth.json; growth_part)
 Results: <work>/cluster.json (a part's entry is replaced when it is rerun).
 """
 
@@ -25,6 +27,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -35,6 +38,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import ROOT, bench_scene, run_ptovs  # noqa: E402  (same folder)
+
+from ptovs.pipeline import PIPELINE as PIPELINE_STAGES  # noqa: E402
 
 SNAKEFILE = ROOT / "workflow" / "Snakefile"
 PROFILES = ROOT / "workflow" / "profiles"
@@ -202,12 +207,71 @@ def paper_part(root: Path) -> dict:
             "extract_on_cpu_s": cpu_extract, "node_hours": sum(totals.values()) / 3600}  # fmt: skip
 
 
+def growth_part(root: Path) -> dict:
+    """The seven PT-OVS scenes on a 16-node cluster, on paper, from the measured
+    growth of each stage at a real photo size (bench/growth.py's <root>/growth.json,
+    the `landmark` preset: 640-760 px, 0.37 MP a photo against PT-OVS's 0.33 MP, so
+    the figures lean long): a stage's time at n photos is a·n^b fitted to its
+    measured sizes (2 threads, our machine), extract-features' taken instead from
+    the real backends on a GPU as in `paper` (the stand-in's time says nothing of
+    SAM's). Peak memory: the largest measured, and a·n^b at n when b > 0.05."""
+    growth = json.loads((root / "growth.json").read_text())
+    runs = [r for r in growth["runs"].values()
+            if r.get("preset") == "landmark" and r.get("photos")]  # fmt: skip
+
+    def fit(points: list[tuple[float, float]]) -> tuple[float, float]:
+        xs = [math.log(x) for x, _ in points]
+        ys = [math.log(y) for _, y in points]
+        if len(set(xs)) < 2:  # one size: linear in photos
+            return points[0][1] / points[0][0], 1.0
+        mx, my = sum(xs) / len(xs), sum(ys) / len(ys)
+        b = sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True)) / sum(
+            (x - mx) ** 2 for x in xs
+        )
+        return math.exp(my - b * mx), b
+
+    model: dict[str, dict] = {}
+    for stage in PIPELINE_STAGES:
+        recs = [(r["photos"], r["stages"][stage]) for r in runs
+                if r.get("stages", {}).get(stage, {}).get("exit") == 0]  # fmt: skip
+        if not recs:
+            continue
+        a, b = fit([(n, rec["wall_s"]) for n, rec in recs])
+        am, bm = fit([(n, rec["peak_rss_mb"]) for n, rec in recs])
+        model[stage] = {"a": a, "b": round(b, 3), "mem_a": am, "mem_b": round(bm, 3),
+                        "sizes": [n for n, _ in recs],
+                        "peak_mb": max(rec["peak_rss_mb"] for _, rec in recs)}  # fmt: skip
+
+    def chain(n: int) -> dict[str, float]:
+        out = {}
+        for stage, m in model.items():
+            if stage == "extract-features":
+                out["extract-features (GPU)"] = n * IMAGES_PER_VIEW * SAM_CLIP_GPU_S
+            else:
+                out[stage] = m["a"] * n ** m["b"]
+        return out
+
+    def memory(n: int) -> dict[str, float]:
+        return {stage: max(m["peak_mb"], m["mem_a"] * n ** m["mem_b"])
+                if m["mem_b"] > 0.05 else m["peak_mb"] for stage, m in model.items()}  # fmt: skip
+
+    per_scene = {name: chain(n) for name, n in PT_OVS.items()}
+    totals = {name: sum(c.values()) for name, c in per_scene.items()}
+    worst = max(totals, key=totals.get)
+    queue_s = 60 * len(model)
+    return {"model": model, "per_scene_s": per_scene, "totals_s": totals,
+            "memory_mb": {name: memory(n) for name, n in PT_OVS.items()},
+            "critical_path": worst, "wall_s": totals[worst] + queue_s,
+            "node_hours": sum(totals.values()) / 3600}  # fmt: skip
+
+
 PARTS = {
     "make": make_part,
     "local": local_part,
     "slurm": slurm_part,
     "stages": stages_part,
     "paper": paper_part,
+    "growth": growth_part,
 }
 
 

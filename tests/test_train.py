@@ -280,6 +280,21 @@ def test_hard_cases_give_no_nan():
     assert torch.equal(per, v.const) and (x.grad == 0).all()
 
 
+def test_view_store_sample_keeps_what_fits_and_never_spills(tmp_path):
+    """The lift's store: views past the budget are dropped (counted), not written."""
+    _, _, bw, segs, codes, _, _ = _toy_view(seed=4)
+    v = lang.prepare_view(bw, segs, codes, None, None)
+    store = lang.ViewStore(2 * v.nbytes + 10, tmp_path / "spill", sample=True)
+    for _ in range(5):
+        store.add(v)
+    assert len(store) == 2 and store.dropped == 3
+    assert store.ram_bytes == 2 * v.nbytes and store.disk_bytes == 0
+    assert not (tmp_path / "spill").exists()
+    empty = lang.ViewStore(0, None, sample=True)
+    empty.add(v)
+    assert len(empty) == 0 and empty.dropped == 1
+
+
 def test_view_store_spills_to_disk_and_reads_back(tmp_path):
     g, cam, bw, segs, codes, _, _ = _toy_view(seed=4)
     v = lang.prepare_view(bw, segs, codes, None, None)
@@ -606,14 +621,21 @@ def test_lift_variant_on_tiny(trained, optimised):
 def test_lift_in_gaussian_ranges_matches_one_pass(trained):
     """The lift's [P, L, A, 512] sums held within cache_mb: with 4 MB the tiny scene
     (715 Gaussians, 24 KB each) takes several passes over the views, one range of
-    Gaussians each, and gives the codes of one pass."""
+    Gaussians each, and gives the codes of one pass. The reported loss is over the
+    views whose data fit those 4 MB: the others are dropped, never spilled."""
     work, data, out = trained
     multi = run_cli(
         work, "train", "--data", str(data), "--set", "train-male.cache_mb=4"
     )
     one = work / "tiny_s0" / "train-male" / _path_of(out, "train-male").name
     with Artifact(_path_of(multi, "train-male")) as a, Artifact(one) as b:
-        assert read_json_dataset(a.root()["metrics_json"])["lift_passes"] >= 4
+        ma = read_json_dataset(a.root()["metrics_json"])
+        mb = read_json_dataset(b.root()["metrics_json"])
+        assert ma["lift_passes"] >= 4
+        assert mb["loss_views"] == mb["views"] and mb["loss_views_dropped"] == 0
+        assert ma["loss_views"] + ma["loss_views_dropped"] == ma["views"]
+        assert ma["loss_views_dropped"] > 0
+        assert ma["final_loss"] is None or np.isfinite(ma["final_loss"])
         assert a.config["mode"] == b.config["mode"] == "lift"
         np.testing.assert_array_equal(a.root()["seen_bits"], b.root()["seen_bits"])
         np.testing.assert_allclose(

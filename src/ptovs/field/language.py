@@ -284,20 +284,31 @@ def masked_l1(r: Tensor, v: ViewData, scale: Tensor) -> tuple[Tensor, Tensor]:
 
 class ViewStore:
     """Every view's `ViewData`: in RAM up to a byte budget, beyond it saved as `.npy`
-    in a scratch folder and memory-mapped (copy-on-write: no RAM copy)."""
+    in a scratch folder and memory-mapped (copy-on-write: no RAM copy).
 
-    def __init__(self, budget_bytes: int, scratch: Path | None):
+    `sample=True` keeps what fits the budget and drops the rest (counted in
+    `dropped`): for a loss that is only reported, whose views need not all be kept
+    (a landmark's views are ~0.1 GB each: 763 of them would spill 80 GB)."""
+
+    def __init__(self, budget_bytes: int, scratch: Path | None, sample: bool = False):
         self.budget = budget_bytes
         self.scratch = scratch
+        self.sample = sample
         self.items: list[ViewData | tuple[Path, tuple]] = []
         self.ram_bytes = 0
         self.disk_bytes = 0
+        self.dropped = 0
 
     def add(self, v: ViewData) -> None:
         size = v.nbytes
-        if self.ram_bytes + size <= self.budget or self.scratch is None:
+        if self.ram_bytes + size <= self.budget or (
+            self.scratch is None and not self.sample
+        ):
             self.items.append(v)
             self.ram_bytes += size
+            return
+        if self.sample:
+            self.dropped += 1
             return
         self.scratch.mkdir(parents=True, exist_ok=True)
         prefix = self.scratch / f"v{len(self.items):06d}"

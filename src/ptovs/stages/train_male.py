@@ -37,7 +37,9 @@ training ends once the epoch-mean loss (one pass over all views) has stayed abov
 Writes root datasets: `codes` [P_seen, L, N·3] float16 (normalised, as rendered)
 for the Gaussians some train view sees, `seen_bits` (np.packbits of the [P] mask),
 `meta_json` (levels, slots, P), `metrics_json` (iterations, time, final loss per
-level, bytes per Gaussian) and `log_epoch_loss`.
+level, bytes per Gaussian; with the lift, the loss is over the first `loss_views`
+views whose data fit `cache_mb`, so memory and scratch stay flat as the collection
+grows) and `log_epoch_loss`.
 """
 
 from __future__ import annotations
@@ -74,7 +76,7 @@ from ptovs.stage import scene_input, stage_command, upstream
 log = logging.getLogger(__name__)
 
 NAME = "train-male"
-VERSION = 1
+VERSION = 2  # 2: the lift's loss over the views within cache_mb (no spill)
 
 
 def _needs_uncertainty(c: Config) -> bool:
@@ -272,7 +274,11 @@ def run(inputs: Inputs, config: Config, ckpt: Checkpoint | None = None) -> dict:
     )
     with tempfile.TemporaryDirectory(prefix="ptovs-male-") as tmp:
         scratch = (ckpt.folder if ckpt is not None else Path(tmp)) / "views"
-        store = ViewStore(int(config.cache_mb) << 20, scratch)
+        # the lift needs the views only for its reported loss: those that fit
+        # cache_mb, never a spill that grows with the collection
+        store = ViewStore(
+            int(config.cache_mb) << 20, scratch, sample=config.mode == "lift"
+        )
         if config.mode == "lift":
             # the [P, L, A, D] sums within cache_mb: Gaussians in ranges, one pass
             # over the views each (the first also stores the views for the loss)
@@ -314,6 +320,9 @@ def run(inputs: Inputs, config: Config, ckpt: Checkpoint | None = None) -> dict:
                 save=(ckpt.save if ckpt else lambda s: None),
             )  # fmt: skip
         final, per_level = evaluate_loss(f, store, config.loss_variant)
+        if len(store) == 0:  # no view's data fit cache_mb: no loss to report
+            final, per_level = None, [None] * len(levels)
+        metrics.update(loss_views=len(store), loss_views_dropped=store.dropped)
         del store
     codes = normalize_chunks(f).reshape(len(g), len(levels), len(apps) * CODE_DIM)
     if not torch.isfinite(codes).all():
@@ -331,9 +340,9 @@ def run(inputs: Inputs, config: Config, ckpt: Checkpoint | None = None) -> dict:
         views=len(views),
     )
     log.info(
-        "train-male: %d iterations (%.1f epochs, %s) in %.1f s; final loss %.5f",
+        "train-male: %d iterations (%.1f epochs, %s) in %.1f s; final loss %s",
         metrics["iterations"], metrics["epochs"], metrics["stop"],
-        metrics["train_seconds"], final,
+        metrics["train_seconds"], "–" if final is None else f"{final:.5f}",
     )  # fmt: skip
     return {
         "codes": stored,
