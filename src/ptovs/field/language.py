@@ -317,6 +317,12 @@ class ViewStore:
         self.items.append((prefix, v.shape))
         self.disk_bytes += size
 
+    @property
+    def full(self) -> bool:
+        """A sampling store that has dropped a view takes no more (its caller can
+        skip building them)."""
+        return self.sample and self.dropped > 0
+
     def __len__(self) -> int:
         return len(self.items)
 

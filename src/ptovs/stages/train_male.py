@@ -38,8 +38,8 @@ Writes root datasets: `codes` [P_seen, L, N·3] float16 (normalised, as rendered
 for the Gaussians some train view sees, `seen_bits` (np.packbits of the [P] mask),
 `meta_json` (levels, slots, P), `metrics_json` (iterations, time, final loss per
 level, bytes per Gaussian; with the lift, the loss is over the first `loss_views`
-views whose data fit `cache_mb`, so memory and scratch stay flat as the collection
-grows) and `log_epoch_loss`.
+views whose data fit `LIFT_LOSS_MB`, so memory and scratch stay flat as the
+collection grows) and `log_epoch_loss`.
 """
 
 from __future__ import annotations
@@ -69,6 +69,7 @@ from ptovs.field.language import (
     untrained,
 )
 from ptovs.field.render import WildField
+from ptovs.memory import release
 from ptovs.nets.autoencoder import load_autoencoder
 from ptovs.raster import Camera, Gaussians, blend_weights
 from ptovs.stage import scene_input, stage_command, upstream
@@ -76,7 +77,11 @@ from ptovs.stage import scene_input, stage_command, upstream
 log = logging.getLogger(__name__)
 
 NAME = "train-male"
-VERSION = 2  # 2: the lift's loss over the views within cache_mb (no spill)
+VERSION = 3  # 3: the lift's loss over the views within LIFT_LOSS_MB (no spill)
+LIFT_LOSS_MB = 1024
+"""RAM for the views the lift's reported loss is taken over (at most cache_mb): the
+first train views whose data fit (a 700×470 view's is 0.1-0.3 GB). The loss is a
+figure only; the codes never depend on it."""
 
 
 def _needs_uncertainty(c: Config) -> bool:
@@ -202,7 +207,11 @@ def prepare_views(
                 mask_weights(valid, u_t, u_a, config.loss_variant),
                 out=lift,
             )
+        release()  # the view's freed buffers back to the system (ptovs.memory)
         if store is None:
+            continue
+        if store.full:  # not built: the sample is complete
+            store.dropped += 1
             continue
         store.add(
             prepare_view(
@@ -274,11 +283,13 @@ def run(inputs: Inputs, config: Config, ckpt: Checkpoint | None = None) -> dict:
     )
     with tempfile.TemporaryDirectory(prefix="ptovs-male-") as tmp:
         scratch = (ckpt.folder if ckpt is not None else Path(tmp)) / "views"
-        # the lift needs the views only for its reported loss: those that fit
-        # cache_mb, never a spill that grows with the collection
-        store = ViewStore(
-            int(config.cache_mb) << 20, scratch, sample=config.mode == "lift"
+        # the lift needs the views only for its reported loss: the first that fit
+        # LIFT_LOSS_MB, never a spill or a store that grows with the collection
+        lift = config.mode == "lift"
+        budget = (
+            min(int(config.cache_mb), LIFT_LOSS_MB) if lift else int(config.cache_mb)
         )
+        store = ViewStore(budget << 20, scratch, sample=lift)
         if config.mode == "lift":
             # the [P, L, A, D] sums within cache_mb: Gaussians in ranges, one pass
             # over the views each (the first also stores the views for the loss)
