@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import math
 import os
 import shutil
 import subprocess
@@ -38,6 +37,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import ROOT, bench_scene, run_ptovs  # noqa: E402  (same folder)
+from growth import fit_power  # noqa: E402  (same folder)
 
 from ptovs.pipeline import PIPELINE as PIPELINE_STAGES  # noqa: E402
 
@@ -220,15 +220,8 @@ def growth_part(root: Path) -> dict:
             if r.get("preset") == "landmark" and r.get("photos")]  # fmt: skip
 
     def fit(points: list[tuple[float, float]]) -> tuple[float, float]:
-        xs = [math.log(x) for x, _ in points]
-        ys = [math.log(y) for _, y in points]
-        if len(set(xs)) < 2:  # one size: linear in photos
-            return points[0][1] / points[0][0], 1.0
-        mx, my = sum(xs) / len(xs), sum(ys) / len(ys)
-        b = sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True)) / sum(
-            (x - mx) ** 2 for x in xs
-        )
-        return math.exp(my - b * mx), b
+        # one size: linear in photos
+        return fit_power(points) or (points[0][1] / points[0][0], 1.0)
 
     model: dict[str, dict] = {}
     for stage in PIPELINE_STAGES:

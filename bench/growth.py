@@ -294,15 +294,23 @@ def run_size(args, results, save, preset: str, photos: int, env: dict,
 # ------------------------------------------------------------- fits and tables
 
 
-def fit_exponent(points: list[tuple[float, float]]) -> float | None:
-    """b of y = a·x^b, least squares on log-log; None with fewer than 2 distinct x."""
+def fit_power(points: list[tuple[float, float]]) -> tuple[float, float] | None:
+    """(a, b) of y = a·x^b, least squares on log-log; None with fewer than 2
+    distinct x."""
     pts = [(math.log(x), math.log(y)) for x, y in points if x > 0 and y > 0]
     if len({x for x, _ in pts}) < 2:
         return None
     mx = sum(x for x, _ in pts) / len(pts)
     my = sum(y for _, y in pts) / len(pts)
     sxx = sum((x - mx) ** 2 for x, _ in pts)
-    return sum((x - mx) * (y - my) for x, y in pts) / sxx
+    b = sum((x - mx) * (y - my) for x, y in pts) / sxx
+    return math.exp(my - b * mx), b
+
+
+def fit_exponent(points: list[tuple[float, float]]) -> float | None:
+    """b of y = a·x^b (fit_power); None with fewer than 2 distinct x."""
+    fit = fit_power(points)
+    return None if fit is None else fit[1]
 
 
 def stage_rec(run: dict, stage: str) -> dict | None:

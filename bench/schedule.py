@@ -42,8 +42,8 @@ def stretched(factor: float) -> list[str]:
 
 
 def artifact_of(folder: Path, scene: str) -> Path | None:
-    arts = sorted((folder / scene / "reconstruct").glob("*.h5"))
-    return arts[-1] if len(arts) == 1 else None
+    arts = list((folder / scene / "reconstruct").glob("*.h5"))
+    return arts[0] if len(arts) == 1 else None
 
 
 def figures(art: Path) -> dict:

@@ -19,9 +19,10 @@ import functools
 @functools.cache
 def _trim():
     name = ctypes.util.find_library("c")
+    if not name:
+        return None
     try:
-        libc = ctypes.CDLL(name) if name else None
-        fn = libc.malloc_trim if libc is not None else None
+        fn = ctypes.CDLL(name).malloc_trim
     except (OSError, AttributeError):  # not glibc
         return None
     fn.argtypes = [ctypes.c_size_t]

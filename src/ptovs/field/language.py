@@ -288,7 +288,7 @@ class ViewStore:
 
     `sample=True` keeps what fits the budget and drops the rest (counted in
     `dropped`): for a loss that is only reported, whose views need not all be kept
-    (a landmark's views are ~0.1 GB each: 763 of them would spill 80 GB)."""
+    (a landmark's views are 0.1-0.3 GB each: 763 of them would spill over 100 GB)."""
 
     def __init__(self, budget_bytes: int, scratch: Path | None, sample: bool = False):
         self.budget = budget_bytes
@@ -316,6 +316,10 @@ class ViewStore:
             np.save(f"{prefix}_{k}.npy", t.numpy())
         self.items.append((prefix, v.shape))
         self.disk_bytes += size
+
+    def skip(self) -> None:
+        """Count a view its caller did not build because the store is `full`."""
+        self.dropped += 1
 
     @property
     def full(self) -> bool:

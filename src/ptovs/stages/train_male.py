@@ -211,7 +211,7 @@ def prepare_views(
         if store is None:
             continue
         if store.full:  # not built: the sample is complete
-            store.dropped += 1
+            store.skip()
             continue
         store.add(
             prepare_view(
@@ -290,7 +290,7 @@ def run(inputs: Inputs, config: Config, ckpt: Checkpoint | None = None) -> dict:
             min(int(config.cache_mb), LIFT_LOSS_MB) if lift else int(config.cache_mb)
         )
         store = ViewStore(budget << 20, scratch, sample=lift)
-        if config.mode == "lift":
+        if lift:
             # the [P, L, A, D] sums within cache_mb: Gaussians in ranges, one pass
             # over the views each (the first also stores the views for the loss)
             dim = int(
@@ -331,7 +331,7 @@ def run(inputs: Inputs, config: Config, ckpt: Checkpoint | None = None) -> dict:
                 save=(ckpt.save if ckpt else lambda s: None),
             )  # fmt: skip
         final, per_level = evaluate_loss(f, store, config.loss_variant)
-        if len(store) == 0:  # no view's data fit cache_mb: no loss to report
+        if len(store) == 0:  # no view's data fit the budget: no loss to report
             final, per_level = None, [None] * len(levels)
         metrics.update(loss_views=len(store), loss_views_dropped=store.dropped)
         del store

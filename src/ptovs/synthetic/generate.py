@@ -102,6 +102,11 @@ class Preset:
     more photos of the same world: cameras drawn as the others' (never an
     evaluation candidate), after every photo of the preset's own plan."""
 
+    @property
+    def train_limit(self) -> int:
+        """The most train photos a scene of this preset may have."""
+        return max(self.max_train, self.n_train)
+
 
 PRESETS: dict[str, Preset] = {
     "tiny": Preset(
@@ -666,10 +671,9 @@ def plan_scene(preset: str, seed: int, standin: int = 1, extra: int = 0) -> Scen
         sample_camera(_rng(seed, 2, i), world, cfg.long_side, frontal=i in cand)
         for i in range(n_img)
     ]
-    limit = max(cfg.max_train, cfg.n_train)
-    if not 0 <= extra <= limit - cfg.n_train:
+    if not 0 <= extra <= cfg.train_limit - cfg.n_train:
         raise PhotoCountError(
-            f"preset {preset!r} holds at most {limit} train photos; "
+            f"preset {preset!r} holds at most {cfg.train_limit} train photos; "
             f"{cfg.n_train + extra} asked"
         )
     for i in range(n_img, n_img + extra):
@@ -725,11 +729,10 @@ def photo_subset(plan: ScenePlan, preset: str, photos: int | None) -> list[int]:
     if photos is None or photos == cfg.n_train:
         return list(range(n_img))
     evals = [i for i in plan.eval_ids if i not in plan.test_ids]
-    limit = max(cfg.max_train, cfg.n_train)
-    if not len(evals) <= photos <= limit:
+    if not len(evals) <= photos <= cfg.train_limit:
         raise PhotoCountError(
             f"preset {preset!r} takes {len(evals)} to "
-            f"{limit} train photos (its {len(evals)} labelled views are train "
+            f"{cfg.train_limit} train photos (its {len(evals)} labelled views are train "
             "photos)"
         )
     if photos > cfg.n_train:  # every photo of the plan, then the extra ones
