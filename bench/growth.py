@@ -42,7 +42,11 @@ stage's peak RSS):
 and per scene its train photos and their total pixels (ptovs.scene.load_scene: the
 working size of each train view). A failed stage ends that size's chain; `--timeout S`
 is a wall budget for the whole run (the stage running when it ends is killed, the rest
-skipped). Logs: <work>/<scene>/logs/<stage>.{out,err}.
+skipped); `--resume` goes on with a size cut off before (by --timeout or a kill),
+keeping the stages growth.json records as done and their artifacts, so a run longer
+than one sitting is measured in parts (each stage's record has its CPU seconds and
+the 1-min load average before and after it: a stage that shared the machine shows
+it). Logs: <work>/<scene>/logs/<stage>.{out,err}.
 
 Results: <work>/growth.json (written after every stage; sizes measured by an earlier
 run with the same seed, --set items, config, threads and CPU are kept), then markdown
@@ -235,11 +239,26 @@ def run_size(args, results, save, preset: str, photos: int, env: dict,
     name = scene_name(preset, args.seed, photos)
     scene = args.data / name
     work = args.work / name
-    shutil.rmtree(work, ignore_errors=True)
     logs = work / "logs"
-    logs.mkdir(parents=True)
-    run = results["runs"][name] = {"preset": preset, "photos_asked": photos,
-                                   "scene": str(scene), "stages": {}}  # fmt: skip
+    old = results["runs"].get(name) if args.resume else None
+    if old and old.get("stages") and logs.is_dir():
+        # --resume: the stages done (recorded, their artifact on disk) are kept
+        run = old
+        run["stages"] = {s: r for s, r in old["stages"].items()
+                         if r.get("timeout") or "started" in r
+                         or ok(r) and (a := artifact_path(logs, s))
+                         and Path(a).exists()}  # fmt: skip
+        run.setdefault("resumed", []).append(
+            {"date": time.strftime("%Y-%m-%d %H:%M"),
+             "kept": [s for s, r in run["stages"].items() if ok(r)],
+             "commit": results["machine"].get("commit")})  # fmt: skip
+    else:
+        shutil.rmtree(work, ignore_errors=True)
+        logs.mkdir(parents=True)
+        run = {"preset": preset, "photos_asked": photos, "scene": str(scene),
+               "date": time.strftime("%Y-%m-%d %H:%M"),
+               "commit": results["machine"].get("commit"), "stages": {}}  # fmt: skip
+    results["runs"][name] = run
 
     def left() -> float | None:
         return None if deadline is None else deadline - time.perf_counter()
@@ -275,8 +294,19 @@ def run_size(args, results, save, preset: str, photos: int, env: dict,
         if stop:
             run["stages"][stage] = {"skipped": stop}
             continue
+        if ok(run["stages"].get(stage)):  # kept by --resume
+            print(f"{name}  {stage:<20} {'kept':>12}", file=sys.stderr, flush=True)
+            continue
+        cut = run["stages"].get(stage)  # a stage --timeout or a kill cut off before
+        run["stages"][stage] = {"started": time.strftime("%Y-%m-%d %H:%M:%S")}
+        save()
         cmd = stage_command(args, work, scene, args.threads, stage)
         rec = run["stages"][stage] = run_stage(cmd, env, logs, stage, left())
+        if cut:
+            # it went on from its checkpoint, if it has one: wall_s is this part only
+            rec["went_on_after"] = (
+                cut.get("wall_s") or f"a kill, started {cut.get('started')}"
+            )
         rec["threads"] = args.threads
         if ok(rec):
             q = quality(stage, work, scene, logs)
@@ -286,7 +316,9 @@ def run_size(args, results, save, preset: str, photos: int, env: dict,
         save()
         qtxt = f"  {QUALITY[stage][0]} {fmt_q(stage, rec)}" if stage in QUALITY else ""
         stop = report_stage(name, stage, rec, qtxt)
-    run["total_s"] = round(time.perf_counter() - t0, 1)
+    run["total_s" if "resumed" not in run else "last_part_s"] = round(
+        time.perf_counter() - t0, 1
+    )
     save()
     return not stop.startswith("the --timeout")
 
@@ -557,6 +589,9 @@ def main() -> None:
                    help="draw the plot to <work>/growth.png")  # fmt: skip
     p.add_argument("--plot-to", type=Path, default=None, metavar="PATH",
                    help="draw the plot to PATH instead (implies --plot)")  # fmt: skip
+    p.add_argument("--resume", action="store_true",
+                   help="go on with a size cut off before (--timeout, a kill): keep its "
+                   "work folder and the stages growth.json records as done")  # fmt: skip
     p.add_argument("--report-only", action="store_true",
                    help="run nothing: the tables (and plot) of <work>/growth.json")  # fmt: skip
     args = p.parse_args()

@@ -140,6 +140,7 @@ def run_stage(cmd: list[str], env: dict, logs: Path, stage: str,
     after `budget` s."""
     out, err = logs / f"{stage}.out", logs / f"{stage}.err"
     with out.open("w") as fo, err.open("w") as fe:
+        load0 = os.getloadavg()[0]
         t0 = time.perf_counter()
         proc = subprocess.Popen(cmd, env=env, stdout=fo, stderr=fe,
                                 start_new_session=True)  # fmt: skip
@@ -155,7 +156,11 @@ def run_stage(cmd: list[str], env: dict, logs: Path, stage: str,
                 timer.cancel()
         wall = time.perf_counter() - t0
     proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here, not by Popen
+    # its CPU seconds and the machine's 1-min load average before and after: a
+    # stage that shared the machine shows a load above its threads
     res = {"wall_s": round(wall, 2), "peak_rss_mb": round(usage.ru_maxrss / 1024, 1),
+           "cpu_s": round(usage.ru_utime + usage.ru_stime, 1),
+           "load": [round(load0, 2), round(os.getloadavg()[0], 2)],
            "exit": proc.returncode, "cmd": shlex.join(cmd)}  # fmt: skip
     if proc.returncode != 0:
         if killed.is_set():
