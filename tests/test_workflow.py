@@ -433,6 +433,7 @@ def test_slurm_profile_gives_make_alls_table(batch_data, make_all, slurm_cluster
             for line in acct.stdout.splitlines()[1:]]  # fmt: skip
     jobs = {r["JobID"]: r for r in rows if "." not in r["JobID"]}
     steps = {r["JobID"].split(".")[0]: r for r in rows if r["JobID"].endswith(".0")}
+    unsampled = []
     for scene in ("tiny_s0", "tiny_s1"):
         for stage in PIPELINE:
             tag = f"rule_{rule_name(stage)}_wildcards_{scene}"
@@ -442,7 +443,14 @@ def test_slurm_profile_gives_make_alls_table(batch_data, make_all, slurm_cluster
             assert job["State"] == "COMPLETED" and job["Partition"] == "cpu"
             assert job["AllocCPUS"] == "1" and job["Elapsed"] != "00:00:00"
             assert _mb(job["ReqMem"]) == RESOURCES[stage].mem_mb
+            if not step["MaxRSS"]:
+                # jobacct_gather/linux samples a step every JobAcctGatherFrequency
+                # s; a step of a few seconds can end before its first sample
+                unsampled.append((tag, step["Elapsed"]))
+                continue
             assert 10 < _mb(step["MaxRSS"]) < RESOURCES[stage].mem_mb
+    # a stage's memory is checked against its request on nearly every job
+    assert len(unsampled) <= 2, (unsampled, acct.stdout)
     broken = [
         r for r in jobs.values() if r["Comment"] == "rule_reconstruct_wildcards_broken"
     ]
