@@ -363,6 +363,9 @@ def test_page_handles_drive_the_session(page, session, client, tmp_path):
     answer = panel.state.answer
     assert answer.selected > 0 and answer.text == PHRASE
     _wait(lambda: f"{answer.selected:,} of" in panel.status.content, what="status")
+    # the press's handler ends after the status (it redraws); a press before then
+    # is refused as "still working" (a busy machine shows it)
+    _wait(lambda: not panel.busy, what="the first request to end")
     # the splats on the page carry the highlight exactly where the selection is
     rgba = np.ascontiguousarray(panel.splats.buffer[:, 7]).view(np.uint8).reshape(-1, 4)
     magenta = (

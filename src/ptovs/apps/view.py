@@ -503,6 +503,11 @@ class Panel:
         self.draw_sky()
         self.refresh_heatmap()
 
+    @property
+    def busy(self) -> bool:
+        """Whether a query or tour of this page is running (another is refused)."""
+        return self._busy.locked()
+
     @contextlib.contextmanager
     def _alone(self) -> Iterator[None]:
         """One query or tour of this page at a time; another press is refused."""
