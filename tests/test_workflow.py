@@ -19,7 +19,9 @@ import pytest
 
 from conftest import copy_work, need_slurm_host
 from ptovs.pipeline import (
+    FLOOR_MB,
     PIPELINE,
+    REF_PHOTOS,
     RESOURCES,
     SCENE_NAME,
     SceneNameError,
@@ -27,6 +29,7 @@ from ptovs.pipeline import (
     is_scene_name,
     rule_name,
     scene_folders,
+    scene_photos,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -61,6 +64,37 @@ def test_resource_table_has_every_stage():
         assert r.threads >= 1 and r.peak_mb > 0 and r.minutes > 0, stage
         assert r.mem_mb >= 1.5 * r.peak_mb and r.mem_mb % 256 == 0, stage
         assert r.device in ("", "device"), stage
+        # a scene's size moves its requests one way: more photos never ask for less
+        sizes = (0, 12, 100, REF_PHOTOS, 2934)
+        mems = [r.mem_mb_for(n) for n in sizes]
+        assert mems == sorted(mems) and mems[0] >= 1.5 * FLOOR_MB, (stage, mems)
+        assert mems[3] == r.mem_mb
+        assert [r.minutes_for(n) for n in sizes[:4]] == [r.minutes] * 4, stage
+        assert r.minutes_for(2 * REF_PHOTOS) == 2 * r.minutes, stage
+        if r.mb_per_photo == 0:  # a flat stage asks for the same at any size
+            assert len(set(mems)) == 1, (stage, mems)
+
+
+def test_scene_photos_counts_the_photos_a_stage_reads(tmp_path):
+    """dense/images, then images/, then the folder itself; other files do not count."""
+    posed = tmp_path / "posed"
+    (posed / "dense" / "images").mkdir(parents=True)
+    for name in ("a.jpg", "b.PNG", "c.txt"):
+        (posed / "dense" / "images" / name).write_bytes(b"")
+    (posed / "dense" / "images" / "d.jpg").mkdir()  # a folder named like a photo
+    assert scene_photos(posed) == 2
+    photos = tmp_path / "photos"
+    (photos / "images").mkdir(parents=True)
+    (photos / "images" / "x.jpeg").write_bytes(b"")
+    (photos / "y.jpg").write_bytes(b"")
+    assert scene_photos(photos) == 1
+    (tmp_path / "flat").mkdir()
+    for i in range(3):
+        (tmp_path / "flat" / f"{i}.tif").write_bytes(b"")
+    assert scene_photos(tmp_path / "flat") == 3
+    (tmp_path / "empty" / "dense").mkdir(parents=True)
+    assert scene_photos(tmp_path / "empty") == 0
+    assert scene_photos(tmp_path / "missing") == 0
 
 
 def test_workflow_has_a_rule_per_stage(tmp_path):
@@ -442,20 +476,21 @@ def test_slurm_profile_gives_make_alls_table(batch_data, make_all, slurm_cluster
             job, step = jobs[done[0]], steps[done[0]]
             assert job["State"] == "COMPLETED" and job["Partition"] == "cpu"
             assert job["AllocCPUS"] == "1" and job["Elapsed"] != "00:00:00"
-            assert _mb(job["ReqMem"]) == RESOURCES[stage].mem_mb
+            mem = RESOURCES[stage].mem_mb_for(scene_photos(data / scene))
+            assert _mb(job["ReqMem"]) == mem
             if not step["MaxRSS"]:
                 # jobacct_gather/linux samples a step every JobAcctGatherFrequency
                 # s; a step of a few seconds can end before its first sample
                 unsampled.append((tag, step["Elapsed"]))
                 continue
-            assert 10 < _mb(step["MaxRSS"]) < RESOURCES[stage].mem_mb
+            assert 10 < _mb(step["MaxRSS"]) < mem
     # a stage's memory is checked against its request on nearly every job
     assert len(unsampled) <= 2, (unsampled, acct.stdout)
     broken = [
         r for r in jobs.values() if r["Comment"] == "rule_reconstruct_wildcards_broken"
     ]
     assert [r["State"] for r in broken] == ["FAILED", "FAILED"]
-    mem = RESOURCES["reconstruct"].mem_mb
+    mem = RESOURCES["reconstruct"].mem_mb_for(0)  # broken holds no photos
     assert [_mb(r["ReqMem"]) for r in broken] == [mem, 2 * mem]
 
 

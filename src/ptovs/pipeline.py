@@ -103,45 +103,100 @@ def scene_folders(data: Path | str) -> list[Path]:
     return folders
 
 
+# The photo files a scene's stages read (ptovs.sfm takes them from here).
+IMAGE_EXTS = frozenset(
+    {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp", ".jp2"}
+)
+
+
+def scene_photos(folder: Path | str) -> int:
+    """How many photos a scene folder holds: in dense/images (a posed scene), in
+    images/ or in the folder itself (a collection of photos), the first that has
+    any; 0 when none does. The batch drivers size a job's memory and time with it."""
+    folder = Path(folder)
+    for cand in (folder / "dense" / "images", folder / "images", folder):
+        try:
+            n = sum(
+                1
+                for p in cand.iterdir()
+                if p.suffix.lower() in IMAGE_EXTS and p.is_file()
+            )
+        except OSError:
+            continue
+        if n:
+            return n
+    return 0
+
+
+# The collection the resource table is measured on: a Brandenburg-sized scene (the
+# smallest of the seven PT-OVS scenes), `ptovs synth-scene --preset landmark`.
+REF_PHOTOS = 763
+FLOOR_MB = 512  # no stage's process peaks lower (torch alone is ~300 MB)
+
+
 @dataclass(frozen=True)
 class Resources:
     """What one stage of one scene asks a cluster for (`workflow/Snakefile`).
 
-    `peak_mb` is the largest peak RSS measured for the stage (docs/benchmarks.md,
-    "Many scenes, many machines"); the job asks for half as much again. `threads`
-    is what the stage uses well on a cluster node; on one machine the workflow
-    shares the cores among the scenes as `make all` does. `minutes` is the time
-    limit for a `bench`-sized scene on one such job, with room; a PT-OVS scene
-    needs the profile's override (the same section shows how much). `device` names
-    the stage's config key that can put it on a GPU ("" = CPU only): when the
-    config sets it to cuda, the job goes to the GPU partition."""
+    `peak_mb` is the stage's peak RSS measured on a collection of REF_PHOTOS
+    photos of a real photo size (docs/benchmarks.md, "A landmark-sized collection on
+    one machine"). A stage whose memory must grow with the photos says so in
+    `mb_per_photo` (the measured growth a photo); for a scene of n photos the
+    peak is taken as peak_mb + mb_per_photo * (n - REF_PHOTOS), never below
+    FLOOR_MB, and the job asks for half as much again (`mem_mb_for`). `minutes` is
+    the time limit at REF_PHOTOS, with room; it grows in proportion past them (no
+    stage's time grows faster than its photos). `threads` is what the stage uses
+    well on a cluster node; on one machine the workflow shares the cores among the
+    scenes as `make all` does. `device` names the stage's config key that can put
+    it on a GPU ("" = CPU only): when the config sets it to cuda, the job goes to
+    the GPU partition."""
 
     threads: int
     peak_mb: int
     minutes: int
     device: str = ""
+    mb_per_photo: float = 0.0
+
+    def peak_mb_for(self, photos: int) -> float:
+        """The expected peak RSS (MB) for a scene of `photos` photos."""
+        return max(FLOOR_MB, self.peak_mb + self.mb_per_photo * (photos - REF_PHOTOS))
+
+    def mem_mb_for(self, photos: int) -> int:
+        """The memory request (MB) for a scene of `photos` photos: 1.5x its peak,
+        in steps of 256 MB."""
+        return 256 * math.ceil(1.5 * self.peak_mb_for(photos) / 256)
+
+    def minutes_for(self, photos: int) -> int:
+        """The time limit (minutes) for a scene of `photos` photos."""
+        return max(self.minutes, math.ceil(self.minutes * photos / REF_PHOTOS))
 
     @property
     def mem_mb(self) -> int:
-        return 256 * math.ceil(1.5 * self.peak_mb / 256)
+        """The memory request at REF_PHOTOS photos."""
+        return self.mem_mb_for(REF_PHOTOS)
 
 
-# peak_mb: the largest peak RSS measured for the stage's process (MB): the `bench`
-# preset (80 photos of 320x240, ~25k Gaussians) through the workflow's benchmark
-# files on 2026-11-26 (bench/cluster.py --parts stages), the tiny scenes' jobs in
-# sacct (query), and earlier bench and `scale` (3,000 photos) runs in
-# docs/benchmarks.md (reconstruct, render-appearances, extract-features,
-# uncertainty, train-ae). train-male is the default recipe (the lift); the
-# optimising variants peaked at 4.8 GB on bench.
+# peak_mb: the largest peak RSS measured for the stage's process (MB) on the
+# `landmark` preset's seed 0 (640-760 px photos) at 763 photos with the default
+# config, one process a stage (bench/growth.py, 2026-11-26/27; train-male after its
+# memory fixes); where a `bench` run (80 small photos) peaked higher (uncertainty),
+# that figure. mb_per_photo, for the three stages whose memory grows: reconstruct
+# holds its photos and trains a Gaussian per SfM point, 2.9 MB a photo (measured:
+# 3.2, 5.1 and 11.3 GB at 100, 763 and 2,934 photos); train-ae holds its segments'
+# features, 1.1 MB a photo between 100 and 763 photos; train-male's lift sums 24.6 KB
+# a Gaussian (3 levels x 4 slots x 512 floats) until it reaches cache_mb (then it
+# makes more passes instead), and the Gaussians follow the photos (55 a photo at
+# 763, 52 at 2,934): 1.3 MB a photo. minutes: at least 3x the 763-photo wall time on
+# our 2 cores (a cluster core may be slower).
 RESOURCES: dict[str, Resources] = {
-    "reconstruct": Resources(threads=8, peak_mb=1526, minutes=60),
-    "render-appearances": Resources(threads=4, peak_mb=516, minutes=20),
-    "extract-features": Resources(threads=4, peak_mb=571, minutes=30, device="device"),
-    "uncertainty": Resources(threads=4, peak_mb=715, minutes=20),
-    "train-ae": Resources(threads=4, peak_mb=562, minutes=30),
-    "train-male": Resources(threads=8, peak_mb=3484, minutes=30),
-    "query": Resources(threads=4, peak_mb=760, minutes=20, device="device"),
-    "evaluate": Resources(threads=1, peak_mb=356, minutes=10),
+    "reconstruct": Resources(threads=8, peak_mb=5112, minutes=60, mb_per_photo=2.9),
+    "render-appearances": Resources(threads=4, peak_mb=808, minutes=20),
+    "extract-features": Resources(threads=4, peak_mb=571, minutes=60, device="device"),
+    "uncertainty": Resources(threads=4, peak_mb=715, minutes=30),
+    "train-ae": Resources(threads=4, peak_mb=1257, minutes=30, mb_per_photo=1.1),
+    "train-male": Resources(threads=8, peak_mb=7509, minutes=45, mb_per_photo=1.3),
+    "query": Resources(threads=4, peak_mb=1141, minutes=20, device="device"),
+    "evaluate": Resources(threads=1, peak_mb=424, minutes=10),
 }
 
 

@@ -63,6 +63,7 @@ import numpy as np
 from ptovs.artifacts import Store, json_dataset
 from ptovs.atomic import atomic_dir
 from ptovs.errors import InputError, MissingInputError
+from ptovs.pipeline import IMAGE_EXTS
 from ptovs.scene import jpeg_truncated
 from ptovs.scene.images import report_alpha
 
@@ -70,7 +71,6 @@ log = logging.getLogger(__name__)
 
 NAME = "sfm"
 VERSION = 3  # 2: EXIF-rotated JPEGs are staged upright; 3: repeated features dropped
-IMAGE_EXTS = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp", ".jp2"}
 MIN_REGISTERED = 3
 PAIR_SECONDS = 0.2  # exhaustive matching of two 4096-feature photos on 2 cores
 
