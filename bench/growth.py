@@ -49,7 +49,9 @@ the 1-min load average before and after it: a stage that shared the machine show
 it). Logs: <work>/<scene>/logs/<stage>.{out,err}.
 
 Results: <work>/growth.json (written after every stage; sizes measured by an earlier
-run with the same seed, --set items, config, threads and CPU are kept), then markdown
+run with the same seed, --set items, config, threads and CPU are kept, and with
+--resume those of another CPU too, each run naming its CPU; a file of another setup
+is moved aside to growth.<date>.json, never overwritten), then markdown
 tables: the scenes; a row a stage (and the chain's total), per size its seconds, peak
 MB and quality figure, then the exponent b of a·x^b fitted by least squares on log-log
 to wall time and to peak RSS, x the photos (over the sizes of one preset) and the total
@@ -251,13 +253,15 @@ def run_size(args, results, save, preset: str, photos: int, env: dict,
         run.setdefault("resumed", []).append(
             {"date": time.strftime("%Y-%m-%d %H:%M"),
              "kept": [s for s, r in run["stages"].items() if ok(r)],
-             "commit": results["machine"].get("commit")})  # fmt: skip
+             "commit": results["machine"].get("commit"),
+             "cpu": results["machine"].get("cpu_model")})  # fmt: skip
     else:
         shutil.rmtree(work, ignore_errors=True)
         logs.mkdir(parents=True)
         run = {"preset": preset, "photos_asked": photos, "scene": str(scene),
                "date": time.strftime("%Y-%m-%d %H:%M"),
-               "commit": results["machine"].get("commit"), "stages": {}}  # fmt: skip
+               "commit": results["machine"].get("commit"),
+               "cpu": results["machine"].get("cpu_model"), "stages": {}}  # fmt: skip
     results["runs"][name] = run
 
     def left() -> float | None:
@@ -627,8 +631,21 @@ def main() -> None:
     if old:  # an earlier run of the same setup keeps its other sizes
         results["runs"] = old.get("runs", {})
     elif path.exists():
-        print(f"{path}: another setup (seed, --set, config, threads or CPU): "
-              "its runs are dropped", file=sys.stderr)  # fmt: skip
+        prev = json.loads(path.read_text())
+        if args.resume and all(prev.get(k) == results[k] for k in SAME):
+            # the same setup on another CPU: a run cut off goes on here, and each
+            # run says where its parts ran ("cpu", and "resumed"'s entries)
+            results["runs"] = prev.get("runs", {})
+            for run in results["runs"].values():
+                run.setdefault("cpu", prev.get("machine", {}).get("cpu_model"))
+            print(f"{path}: measured on {prev.get('machine', {}).get('cpu_model')!r}, "
+                  f"going on on {facts.get('cpu_model')!r}: a stage's time is its "
+                  "machine's; compare times of one machine only", file=sys.stderr)  # fmt: skip
+        else:  # another setup: its file is kept aside, never overwritten
+            aside = path.with_name(f"growth.{time.strftime('%Y%m%d-%H%M%S')}.json")
+            path.rename(aside)
+            print(f"{path}: another setup (seed, --set, config, threads or CPU): "
+                  f"kept as {aside}; this run starts a new file", file=sys.stderr)  # fmt: skip
 
     def save() -> None:
         write_results(path, results)
