@@ -180,17 +180,20 @@ class Resources:
 # `landmark` preset's seed 0 (640-760 px photos) at 763 photos with the default
 # config, one process a stage (bench/growth.py, 2026-11-26/27; train-male after its
 # memory fixes); where a `bench` run (80 small photos) peaked higher (uncertainty),
-# that figure. mb_per_photo, for the three stages whose memory grows: reconstruct
+# that figure. mb_per_photo, for the stages whose memory grows: reconstruct
 # holds its photos and trains a Gaussian per SfM point, 2.9 MB a photo (measured:
 # 3.2, 5.1 and 11.3 GB at 100, 763 and 2,934 photos); train-ae holds its segments'
 # features, 1.1 MB a photo between 100 and 763 photos; train-male's lift sums 24.6 KB
 # a Gaussian (3 levels x 4 slots x 512 floats) until it reaches cache_mb (then it
 # makes more passes instead), and the Gaussians follow the photos (55 a photo at
-# 763, 52 at 2,934): 1.3 MB a photo. minutes: at least 3x the 763-photo wall time on
+# 763, 52 at 2,934): 1.3 MB a photo; render-appearances renders those Gaussians,
+# 0.25 MB a photo (808 and 1,289 MB at 763 and 2,934 photos). minutes: at least 3x the 763-photo wall time on
 # our 2 cores (a cluster core may be slower).
 RESOURCES: dict[str, Resources] = {
     "reconstruct": Resources(threads=8, peak_mb=5112, minutes=60, mb_per_photo=2.9),
-    "render-appearances": Resources(threads=4, peak_mb=808, minutes=20),
+    "render-appearances": Resources(
+        threads=4, peak_mb=808, minutes=20, mb_per_photo=0.25
+    ),
     "extract-features": Resources(threads=4, peak_mb=571, minutes=60, device="device"),
     "uncertainty": Resources(threads=4, peak_mb=715, minutes=30),
     "train-ae": Resources(threads=4, peak_mb=1257, minutes=30, mb_per_photo=1.1),
