@@ -144,8 +144,9 @@ class Resources:
     `mb_per_photo` (the measured growth a photo); for a scene of n photos the
     peak is taken as peak_mb + mb_per_photo * (n - REF_PHOTOS), never below
     FLOOR_MB, and the job asks for half as much again (`mem_mb_for`). `minutes` is
-    the time limit at REF_PHOTOS, with room; it grows in proportion past them (no
-    stage's time grows faster than its photos). `threads` is what the stage uses
+    the time limit at REF_PHOTOS, with room; it grows in proportion past them (up
+    to 763 photos no stage's time grew faster than its photos; past them the
+    Gaussians grow too, which the room covers). `threads` is what the stage uses
     well on a cluster node; on one machine the workflow shares the cores among the
     scenes as `make all` does. `device` names the stage's config key that can put
     it on a GPU ("" = CPU only): when the config sets it to cuda, the job goes to
@@ -187,8 +188,8 @@ class Resources:
 # a Gaussian (3 levels x 4 slots x 512 floats) until it reaches cache_mb (then it
 # makes more passes instead), and the Gaussians follow the photos (55 a photo at
 # 763, 52 at 2,934): 1.3 MB a photo; render-appearances renders those Gaussians,
-# 0.25 MB a photo (808 and 1,289 MB at 763 and 2,934 photos). minutes: at least 3x the 763-photo wall time on
-# our 2 cores (a cluster core may be slower).
+# 0.25 MB a photo (808 and 1,289 MB at 763 and 2,934 photos). minutes: at least 3x
+# the 763-photo wall time on our 2 cores (a cluster core may be slower).
 RESOURCES: dict[str, Resources] = {
     "reconstruct": Resources(threads=8, peak_mb=5112, minutes=60, mb_per_photo=2.9),
     "render-appearances": Resources(
