@@ -50,8 +50,10 @@ it). Logs: <work>/<scene>/logs/<stage>.{out,err}.
 
 Results: <work>/growth.json (written after every stage; sizes measured by an earlier
 run with the same seed, --set items, config, threads and CPU are kept, and with
---resume those of another CPU too, each run naming its CPU; a file of another setup
-is moved aside to growth.<date>.json, never overwritten), then markdown
+--resume those of another CPU too, each run naming its CPU; the config is compared by
+its content, not its path; a file of another setup is moved aside to
+growth.<date>.json, never overwritten, and with --resume it is an error: a resumed run
+never starts afresh, so no finished stage's work folder is emptied), then markdown
 tables: the scenes; a row a stage (and the chain's total), per size its seconds, peak
 MB and quality figure, then the exponent b of a·x^b fitted by least squares on log-log
 to wall time and to peak RSS, x the photos (over the sizes of one preset) and the total
@@ -63,6 +65,7 @@ published one goes under docs/img with its figures).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import os
@@ -93,6 +96,21 @@ from ptovs.pipeline import PIPELINE  # noqa: E402  (stdlib only: torch stays out
 
 # an earlier growth.json's runs are kept when these (and the CPU) are the same
 SAME = ("seed", "set", "config", "threads", "stages")
+
+
+def config_id(config: str | Path) -> str:
+    """A config as growth.json compares it: the sha256 of its content, so that the
+    same file reached by another path (a git worktree, a copy) is the same setup.
+    An id already made passes through; an older file's path is hashed if it is there."""
+    text = str(config)
+    if text.startswith("sha256:"):
+        return text
+    try:
+        return "sha256:" + hashlib.sha256(Path(text).read_bytes()).hexdigest()[:16]
+    except OSError:
+        return text
+
+
 QUALITY = {
     "reconstruct": ("test PSNR dB", "reconstruct artifact metrics_json['psnr_test']"),
     "uncertainty": (
@@ -623,16 +641,24 @@ def main() -> None:
     deadline = None if args.timeout is None else t_start + args.timeout
     facts = machine_facts()
     results = {"machine": facts, "seed": args.seed, "set": list(args.set),
-               "config": str(args.config), "threads": args.threads,
+               "config": config_id(args.config), "config_path": str(args.config),
+               "threads": args.threads,
                "stages": list(PIPELINE),
                "quality": {s: f"{q}: {src}" for s, (q, src) in QUALITY.items()},
                "runs": {}}  # fmt: skip
-    old = earlier_runs(path, results, SAME)
+    prev = json.loads(path.read_text()) if path.exists() else None
+    if prev is not None:
+        prev["config"] = config_id(prev.get("config", ""))
+    old = earlier_runs(path, results, SAME, prev)
     if old:  # an earlier run of the same setup keeps its other sizes
         results["runs"] = old.get("runs", {})
-    elif path.exists():
-        prev = json.loads(path.read_text())
-        if args.resume and all(prev.get(k) == results[k] for k in SAME):
+    elif prev is not None:
+        differ = [k for k in SAME if prev.get(k) != results[k]]
+        if args.resume and differ:  # fail closed: never a fresh start under --resume
+            p.error(f"--resume: {path} measured another setup ({', '.join(differ)} "
+                    "differ); rerun with the same seed, --set, config and threads, or "
+                    "without --resume to start afresh (its file is then kept aside)")  # fmt: skip
+        if args.resume:
             # the same setup on another CPU: a run cut off goes on here, and each
             # run says where its parts ran ("cpu", and "resumed"'s entries)
             results["runs"] = prev.get("runs", {})

@@ -256,12 +256,15 @@ def check_run_options(p: argparse.ArgumentParser, args: argparse.Namespace) -> N
     args.config = args.config.resolve()
 
 
-def earlier_runs(path: Path, results: dict, same: tuple[str, ...]) -> dict | None:
-    """An earlier results file at `path`, when it measured the same setup (`same`
-    keys of `results`) on the same CPU; else None."""
-    if not path.exists():
-        return None
-    old = json.loads(path.read_text())
+def earlier_runs(
+    path: Path, results: dict, same: tuple[str, ...], old: dict | None = None
+) -> dict | None:
+    """An earlier results file at `path` (or its content `old`, already read), when
+    it measured the same setup (`same` keys of `results`) on the same CPU; else None."""
+    if old is None:
+        if not path.exists():
+            return None
+        old = json.loads(path.read_text())
     if all(old.get(k) == results[k] for k in same) and all(
         old.get("machine", {}).get(k) == results["machine"][k] for k in SAME_MACHINE
     ):
