@@ -283,6 +283,12 @@ class Artifact:
             out[k] = group[k][()]
         return out
 
+    def root_item(self, key: str) -> np.ndarray | None:
+        """One root dataset (None when the artifact has none of that name)."""
+        if "root" not in self._h5 or key not in self._h5["root"]:
+            return None
+        return self._h5["root"][key][()]
+
     def root(self) -> dict[str, np.ndarray]:
         if "root" not in self._h5:
             return {}

@@ -374,6 +374,9 @@ def _status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:
         click.echo(
             f"  {spec.name:<20} {chain.key(spec.name)[:12]}  {state:<8} {detail}"
         )
+        line = chain.summary(spec.name) if state == "done" else None
+        if line:
+            click.echo(f"  {'':<20} {line}")
 
 
 @main.command("export-ply")

@@ -41,6 +41,7 @@ from ptovs.artifacts import (
     artifact_key,
     fingerprint_files,
     provenance,
+    read_json_dataset,
     write_atomic,
 )
 from ptovs.config import (  # did_you_mean: also ptovs.stage's, for the CLI
@@ -114,6 +115,9 @@ class StageSpec:
     extra_key: Callable[[Any, Any], dict[str, str]] | None = None
     """(config, SceneRef) -> {name: digest} of what else the output depends on
     (files outside the scene fingerprint, e.g. the stand-in encoder's vocabulary)."""
+    summary: Callable[[dict], str | None] | None = None
+    """The artifact's metrics (its root `metrics_json`) -> the line `ptovs status`
+    shows under a done stage (None: nothing to show)."""
 
     @property
     def inputs(self) -> dict[str, str]:
@@ -388,6 +392,17 @@ class Chain:
             "overrides before the command (ptovs --set ... <command>):\n"
             + "\n".join(lines)
         )
+
+    def summary(self, stage: str) -> str | None:
+        """The stage's own line for `ptovs status` (its headline figures, from the
+        done artifact's metrics), or None: not done, no summary, no metrics."""
+        spec = get_stage(stage)
+        store, key = self.ctx.store, self.key(stage)
+        if spec.summary is None or not store.exists(self.scene.name, stage, key):
+            return None
+        with Artifact(store.path(self.scene.name, stage, key), verify=False) as art:
+            raw = art.root_item("metrics_json")
+        return None if raw is None else spec.summary(read_json_dataset(raw))
 
     def state(self, stage: str) -> tuple[str, str]:
         """(state, detail) for `ptovs status`: done, corrupt, partial, missing or
@@ -818,12 +833,22 @@ def stage_command(
     count: Callable[[Any, Any], int] | None = None,
     after: Callable[[Artifact], None] | None = None,
     extra_key: Callable[[Any, Any], dict[str, str]] | None = None,
+    summary: Callable[[dict], str | None] | None = None,
     help: str | None = None,
     extras: CommandExtras = CommandExtras(),
 ) -> click.Command:
     """Register a stage and build its click command (every stage's, one way)."""
     REGISTRY[name] = StageSpec(
-        name, version, config_cls, inputs_cls, run, kind, count, after, extra_key
+        name,
+        version,
+        config_cls,
+        inputs_cls,
+        run,
+        kind,
+        count,
+        after,
+        extra_key,
+        summary,
     )
     fields = "\n".join(
         f"  {f.name} = {f.default!r}" for f in dataclasses.fields(config_cls)
