@@ -7,6 +7,7 @@
 #   make bench-standin   the stand-in's failure profile against CLIP's (calibration seeds)
 #   make bench-multiapp  the paper's multi-appearance claim in stand-in 2's world (fresh seeds)
 #   make bench-growth  each stage's time, memory and quality at 100-763 photos (landmark)
+#   make bench-peers OPENSPLAT_SRC=DIR  reconstruct beside OpenSplat --cpu (a clone you give)
 #   make -j3 all       every scene under DATA in parallel, stages in order, then the
 #                      per-scene table (a failing scene is marked, the others go on)
 #   make cluster       the same through Snakemake: PROFILE=local (default) or slurm
@@ -58,7 +59,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # Gaussians, 2.5 %, at relevancy score 0.477 on 2026-11-26's machine)
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo view test system-deps test-slurm lint format bench bench-accuracy bench-upstream bench-standin bench-multiapp bench-growth check-readme all cluster scenes table status clean-work $(SCENES)
+.PHONY: setup demo view test system-deps test-slurm lint format bench bench-accuracy bench-upstream bench-standin bench-multiapp bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
 
 setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml
@@ -148,6 +149,21 @@ bench: setup
 	$(BIN)/python bench/openclip_cpu.py --real $(REAL) --photos 3 --threads 1 2 --batch 1 16 64 \
 		--repeats 3 --out $(QWORK)/openclip_cpu.json
 	$(MAKE) bench-growth
+	@if [ -n "$(OPENSPLAT_SRC)" ]; then $(MAKE) bench-peers; else \
+	  echo "bench-peers not run: give OPENSPLAT_SRC=DIR (a clone of pierotofy/OpenSplat)"; fi
+
+# reconstruct beside OpenSplat on the CPU (issue 44): OpenSplat is built from the
+# source tree you give, never vendored (AGPL-3.0); OPENSPLAT_DEPS=DIR holds its CMake
+# downloads (nlohmann_json, nanoflann, cxxopts) for a machine without a network.
+# Needs OpenCV's C++ headers (Debian: apt install libopencv-dev) and a compiler.
+OPENSPLAT_SRC  ?=
+OPENSPLAT_DEPS ?=
+bench-peers: setup
+	@test -n "$(OPENSPLAT_SRC)" || { echo "bench-peers: give OPENSPLAT_SRC=DIR, a clone \
+	of https://github.com/pierotofy/OpenSplat"; exit 2; }
+	$(BIN)/python bench/peers.py --opensplat-src $(call q,$(OPENSPLAT_SRC)) \
+	  $(if $(OPENSPLAT_DEPS),--fetchcontent $(call q,$(OPENSPLAT_DEPS))) \
+	  --real $(REAL) --work $(QWORK)/peers
 
 # the accuracy instrument (issue 20): ACC_SEEDS seeds of the `small` preset, every
 # variant, ceilings, cluster-bootstrap CIs; dev = the first half of the seeds, test

@@ -1,0 +1,143 @@
+"""bench/peers.py (issue 44) without OpenSplat: the project it hands OpenSplat, the two
+ways it draws OpenSplat's PLY, the time-to-PSNR reading and the build's refusals. CI
+never builds or runs OpenSplat; the benchmark does."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ptovs.field.losses import psnr
+from ptovs.field.ply import write_ply
+from ptovs.scene import load_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def peers():
+    sys.path.insert(0, str(ROOT / "bench"))  # peers imports its neighbours
+    try:
+        spec = importlib.util.spec_from_file_location(
+            "bench_peers", ROOT / "bench" / "peers.py"
+        )
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        yield mod
+    finally:
+        sys.path.remove(str(ROOT / "bench"))
+
+
+def test_project_holds_the_train_photos_their_cameras_and_every_point(
+    peers, tiny_scene_dir, tmp_path
+):
+    import cv2
+    import pycolmap
+
+    scene = load_scene(tiny_scene_dir)
+    val = scene.test_views()[0]
+    info = peers.export_project(scene, tmp_path / "proj", val)
+    train = scene.train_views()
+    assert info == {"train": len(train), "points": len(scene.points_xyz),
+                    "val_image": f"{val.stem}.png"}  # fmt: skip
+    rec = pycolmap.Reconstruction(str(tmp_path / "proj" / "sparse" / "0"))
+    assert len(rec.images) == len(train) + 1 and len(rec.points3D) == len(
+        scene.points_xyz
+    )
+    by_name = {im.name: im for im in rec.images.values()}
+    for v in [*train, val]:
+        im = by_name[f"{v.stem}.png"]
+        cam = rec.cameras[im.camera_id]
+        assert (cam.width, cam.height) == (v.width, v.height)
+        np.testing.assert_allclose(
+            cam.params, [v.K[0, 0], v.K[1, 1], v.K[0, 2], v.K[1, 2]]
+        )
+        np.testing.assert_allclose(
+            im.cam_from_world().matrix(), v.cam_from_world[:3], atol=1e-9
+        )
+    # the pixels both tools train on: ptovs's loader, written losslessly
+    png = cv2.imread(str(tmp_path / "proj" / "images" / f"{train[0].stem}.png"))
+    assert (
+        np.abs(png[..., ::-1] / 255.0 - scene.load_image(train[0])).max()
+        <= 0.5 / 255 + 1e-6
+    )
+
+
+def _gaussians(path: Path, means, colours, opacity=0.6, scale=0.05):
+    n = len(means)
+    sh = np.zeros((n, 16, 3), np.float32)
+    sh[:, 0] = (np.asarray(colours, np.float32) - 0.5) / 0.28209479177387814
+    write_ply(path, np.asarray(means, np.float32), sh,
+              np.full(n, np.log(opacity / (1 - opacity)), np.float32),
+              np.full((n, 3), np.log(scale), np.float32),
+              np.tile(np.float32([1, 0, 0, 0]), (n, 1)))  # fmt: skip
+
+
+def _in_front(view, depth, dx=0.0, dy=0.0):
+    """A world point `depth` in front of the view's camera, offset in its image plane."""
+    m = np.asarray(view.cam_from_world, np.float64)
+    return m[:3, :3].T @ (np.array([dx, dy, depth]) - m[:3, 3])
+
+
+def test_own_reading_draws_separate_gaussians_as_the_rasterizer_does(
+    peers, tiny_scene_dir, tmp_path
+):
+    """Where order cannot matter (no overlap), OpenSplat's image formation as we read
+    it and ptovs's rasterizer draw the same picture."""
+    scene = load_scene(tiny_scene_dir)
+    view = scene.test_views()[0]
+    means = [_in_front(view, 4.0, dx, dy) for dx, dy in ((-1, -0.5), (0, 0), (1, 0.5))]
+    _gaussians(
+        tmp_path / "g.ply", means, [(0.9, 0.2, 0.1), (0.1, 0.8, 0.2), (0.2, 0.3, 0.9)]
+    )
+    frame = peers.opensplat_frame([*scene.train_views(), view])
+    own = peers.opensplat_draw(tmp_path / "g.ply", view, frame, step=0)
+    depth = peers.render_ply(peers.ply_field(tmp_path / "g.ply"), view)
+    assert own.shape == depth.shape == (view.height, view.width, 3)
+    assert np.isfinite(own).all()
+    assert psnr(own, depth) > 45.0
+    assert np.abs(own - np.float32(peers.BACKGROUND)).max() > 0.3  # something is drawn
+
+
+def test_own_reading_keeps_opensplats_scrambled_order(peers, tiny_scene_dir, tmp_path):
+    """OpenSplat's CPU renderer sorts by a key read from a stride-3 view as if it were
+    contiguous: Gaussian 0's key is its NDC depth (about 1), Gaussian 1's its NDC x
+    (about 0 at the centre). So the far Gaussian 1 is drawn over the near 0."""
+    scene = load_scene(tiny_scene_dir)
+    view = scene.test_views()[0]
+    near, far = _in_front(view, 3.0), _in_front(view, 6.0)
+    _gaussians(tmp_path / "g.ply", [near, far, _in_front(view, 5.0, 50.0, 0)],
+               [(0.9, 0.1, 0.1), (0.1, 0.1, 0.9), (0.5, 0.5, 0.5)],
+               opacity=0.95, scale=0.3)  # fmt: skip
+    frame = peers.opensplat_frame([*scene.train_views(), view])
+    own = peers.opensplat_draw(tmp_path / "g.ply", view, frame, step=0)
+    depth = peers.render_ply(peers.ply_field(tmp_path / "g.ply"), view)
+    cy, cx = view.height // 2, view.width // 2
+    assert depth[cy, cx, 0] > 0.8 and depth[cy, cx, 2] < 0.2  # the near red in front
+    assert own[cy, cx, 2] > 0.8 and own[cy, cx, 0] < 0.2  # OpenSplat's: the far blue
+
+
+def test_time_to_a_psnr_on_the_curve(peers):
+    pts = [{"s": 10.0, "psnr_test": 12.0}, {"s": 20.0, "psnr_test": 16.0},
+           {"s": 30.0, "psnr_test": 18.0}]  # fmt: skip
+    assert peers.time_to(pts, 14.0) == pytest.approx(15.0)
+    assert peers.time_to(pts, 11.0) == 10.0
+    assert peers.time_to(pts, 18.5) is None
+
+
+def test_build_refuses_what_is_not_an_opensplat_tree(peers, tmp_path):
+    with pytest.raises(SystemExit, match="not an OpenSplat source tree"):
+        peers.build_opensplat(tmp_path, tmp_path / "cache", None, 1)
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "CMakeLists.txt").write_text("project(opensplat)\n")
+    (src / "opensplat.cpp").write_text("int main() {}\n")
+    (tmp_path / "deps" / "nanoflann").mkdir(parents=True)
+    (tmp_path / "deps" / "nanoflann" / "CMakeLists.txt").write_text("\n")
+    with pytest.raises(SystemExit, match="no source of nlohmann_json, cxxopts"):
+        peers.build_opensplat(src, tmp_path / "cache", tmp_path / "deps", 1)
+    assert not (tmp_path / "cache").exists()  # nothing built, nothing cached
