@@ -52,6 +52,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import ROOT, Results, bench_scene, run_ptovs  # noqa: E402  (same folder)
+from threads import cpu_model, thread_env  # noqa: E402  (same folder)
 
 FETCHED = ("nlohmann_json", "nanoflann", "cxxopts")
 """The FetchContent names of OpenSplat's CMakeLists.txt, as `--fetchcontent` holds them."""
@@ -183,12 +184,14 @@ def export_project(scene, proj: Path, val) -> dict:
 
 
 # ------------------------------------------------------------------------- runs
-def timed(cmd: list[str], env: dict, log: Path) -> tuple[float, float, list]:
-    """Run `cmd` under GNU time; (wall s, peak RSS MB, [(seconds, stdout line)]),
+def timed(cmd: list[str], env: dict, log: Path) -> tuple[float, float, list, dict]:
+    """Run `cmd` under GNU time; (wall s, peak RSS MB, [(seconds, stdout line)], and
+    how quiet the machine was: its CPU seconds and the 1-min load before and after),
     each stdout line timestamped as it arrives (OpenSplat prints a line a step)."""
     gnu_time = shutil.which("time") or "/usr/bin/time"
-    full = [gnu_time, "-f", "PEERS_PEAK_KB %M", *cmd]
+    full = [gnu_time, "-f", "PEERS_PEAK_KB %M %U %S", *cmd]
     lines: list[tuple[float, str]] = []
+    load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     with log.open("w") as fo:
         proc = subprocess.Popen(full, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
@@ -202,15 +205,12 @@ def timed(cmd: list[str], env: dict, log: Path) -> tuple[float, float, list]:
     if proc.returncode != 0:
         tail = "\n".join(text for _, text in lines[-30:])
         raise RuntimeError(f"{' '.join(cmd)} failed ({log}):\n{tail}")
-    peak = [t for _, t in lines if t.startswith("PEERS_PEAK_KB ")]
-    rss = float(peak[-1].split()[1]) / 1024.0 if peak else float("nan")
-    return wall, rss, lines
-
-
-def thread_env(n: int) -> dict:
-    env = {k: v for k, v in os.environ.items() if k != "PTOVS_THREADS"}
-    env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = str(n)
-    return env
+    peak = [t.split() for _, t in lines if t.startswith("PEERS_PEAK_KB ")]
+    rss = float(peak[-1][1]) / 1024.0 if peak else float("nan")
+    cpu = float(peak[-1][2]) + float(peak[-1][3]) if peak else float("nan")
+    quiet = {"cpu_s": round(cpu, 1),
+             "load": [round(load0, 2), round(os.getloadavg()[0], 2)]}  # fmt: skip
+    return wall, rss, lines, quiet
 
 
 def run_opensplat(
@@ -238,13 +238,13 @@ def run_opensplat(
         cmd += ["-s", str(every)]
     if resume is not None:
         cmd += ["--resume", str(resume)]
-    wall, rss, lines = timed(cmd, thread_env(threads), out / "opensplat.log")
+    wall, rss, lines, quiet = timed(cmd, thread_env(threads), out / "opensplat.log")
     steps = [(t, int(x.split()[1].rstrip(":"))) for t, x in lines
              if x.startswith("Step ")]  # fmt: skip
     # the training loop's own pace: the first to the last step line
     rate = ((steps[-1][0] - steps[0][0]) / (steps[-1][1] - steps[0][1])
             if len(steps) > 1 and steps[-1][1] > steps[0][1] else float("nan"))  # fmt: skip
-    return {"wall_s": round(wall, 1), "peak_rss_mb": round(rss),
+    return {"wall_s": round(wall, 1), "peak_rss_mb": round(rss), **quiet,
             "s_per_iteration": round(rate, 4), "iterations": iterations,
             "step_times": {str(k): round(t, 2) for t, k in steps
                            if every > 0 and k % every == 0},
@@ -264,12 +264,14 @@ def run_ours(
            *(f"--set=reconstruct.{kv}" for kv in sets),
            "reconstruct", "--data", str(scene_dir)]  # fmt: skip
     work.mkdir(parents=True)
-    wall, rss, lines = timed(cmd, thread_env(args.threads), work / "reconstruct.log")
+    wall, rss, lines, quiet = timed(
+        cmd, thread_env(args.threads), work / "reconstruct.log"
+    )
     art = Path([x for _, x in lines if ": " in x and x.endswith(".h5")][-1]
                .split(": ", 1)[1])  # fmt: skip
     with Artifact(art) as a:
         m = read_json_dataset(a.root_item("metrics_json"))
-    return {"wall_s": round(wall, 1), "peak_rss_mb": round(rss),
+    return {"wall_s": round(wall, 1), "peak_rss_mb": round(rss), **quiet,
             "s_per_iteration": m.get("seconds_per_iteration"), "iterations": iterations,
             "train_s": m.get("train_seconds"), "gaussians": m.get("gaussians"),
             "psnr_test": m.get("psnr_test"), "psnr_test_nerfw": m.get("psnr_test_nerfw"),
@@ -650,6 +652,7 @@ def main() -> None:
         results.save()
         raise SystemExit(str(exc)) from None
     results["build"] = build
+    results["cpu"] = cpu_model()
     results.save()
     print(f"OpenSplat {build.get('version', '')} ({build['source_id']}): "
           f"{build['binary']}")  # fmt: skip
