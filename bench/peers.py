@@ -530,26 +530,50 @@ def run_scene(
     }
     n, t = args.iterations, args.threads
     binary = build["binary"]
-    if "check" in args.parts:
-        rec["check"] = check_render(binary, proj, args.work / "os" / tag / "check",
-                                    scene, tests[0], t, frame)  # fmt: skip
+
+    def once(key: str, make) -> dict:
+        """A part's record: kept from an earlier run at these iterations (a run cut
+        off goes on where it stopped; --fresh redoes it), else made and saved."""
+        old = rec.get(key)
+        if (
+            not args.fresh
+            and old
+            and old.get("for_iterations") == n
+            and (
+                "wall_s" in old
+                or "psnr_depth_order_vs_theirs" in old
+                or "skipped" in old
+            )
+        ):
+            print(f"{spec}: {key} kept from {old.get('date')}", file=sys.stderr)
+            return old
+        new = make()
+        new.update(for_iterations=n, date=time.strftime("%Y-%m-%d %H:%M"))
+        rec[key] = new
         save()
+        return new
+
+    if "check" in args.parts:
+        once("check", lambda: check_render(
+            binary, proj, args.work / "os" / tag / "check", scene, tests[0], t, frame))  # fmt: skip
     if "same" in args.parts:
         out = args.work / "os" / tag / "same"
         every = args.save_every or max(1, n // 10)
-        run = run_opensplat(binary, proj, out, n, t, info["val_image"], every=every)
-        run.update(ply_psnr(Path(run["ply"]), scene, frame, n))
-        run["curve"] = curve(out, run, scene, frame)
-        rec["opensplat"] = run
-        save()
+
+        def opensplat() -> dict:
+            run = run_opensplat(binary, proj, out, n, t, info["val_image"], every=every)
+            run.update(ply_psnr(Path(run["ply"]), scene, frame, n))
+            run["curve"] = curve(out, run, scene, frame)
+            return run
+
+        run = once("opensplat", opensplat)
         if "check" in args.parts and n % 10 == 0:  # the check again, trained
-            rec["check_trained"] = check_render(
+            once("check_trained", lambda: check_render(
                 binary, proj, args.work / "os" / tag / "check_trained", scene,
-                tests[0], t, frame, start=Path(run["ply"]), start_step=n)  # fmt: skip
-            save()
-        rec["ptovs"] = run_ours(args, scene_dir, n, f"{tag}_wild")
-        save()
-        rec["ptovs_plain"] = run_ours(args, scene_dir, n, f"{tag}_plain", "wild=false")
+                tests[0], t, frame, start=Path(run["ply"]), start_step=n))  # fmt: skip
+        once("ptovs", lambda: run_ours(args, scene_dir, n, f"{tag}_wild"))
+        once("ptovs_plain",
+             lambda: run_ours(args, scene_dir, n, f"{tag}_plain", "wild=false"))  # fmt: skip
         for ours in ("ptovs", "ptovs_plain"):  # against either reading of OpenSplat's
             for reading in ("psnr_test", "psnr_test_own"):
                 reach = time_to(run["curve"], rec[ours]["psnr_test"], reading)
@@ -560,22 +584,23 @@ def run_scene(
         save()
     if "matched" in args.parts and "opensplat" in rec and "ptovs" in rec:
         os_wall, our_wall = rec["opensplat"]["wall_s"], rec["ptovs"]["wall_s"]
-        k = max(1, round(n * our_wall / os_wall))
-        out = args.work / "os" / tag / "matched"
-        run = run_opensplat(binary, proj, out, k, t, info["val_image"])
-        run.update(ply_psnr(Path(run["ply"]), scene, frame, k))
-        rec["opensplat_at_ptovs_time"] = run
-        save()
-        k = max(1, round(n * os_wall / our_wall))
-        if k > args.max_matched_iterations:
-            rec["ptovs_at_opensplat_time"] = {
-                "skipped": f"{k} iterations > --max-matched-iterations "
-                f"{args.max_matched_iterations}"}  # fmt: skip
-        else:
-            rec["ptovs_at_opensplat_time"] = run_ours(
-                args, scene_dir, k, f"{tag}_matched"
-            )
-        save()
+
+        def opensplat_matched() -> dict:
+            k = max(1, round(n * our_wall / os_wall))
+            out = args.work / "os" / tag / "matched"
+            run = run_opensplat(binary, proj, out, k, t, info["val_image"])
+            run.update(ply_psnr(Path(run["ply"]), scene, frame, k))
+            return run
+
+        def ptovs_matched() -> dict:
+            k = max(1, round(n * os_wall / our_wall))
+            if k > args.max_matched_iterations:
+                return {"skipped": f"{k} iterations > --max-matched-iterations "
+                        f"{args.max_matched_iterations}"}  # fmt: skip
+            return run_ours(args, scene_dir, k, f"{tag}_matched")
+
+        once("opensplat_at_ptovs_time", opensplat_matched)
+        once("ptovs_at_opensplat_time", ptovs_matched)
 
 
 def table(results: dict) -> str:
@@ -635,6 +660,9 @@ def main() -> None:
     p.add_argument("--save-every", type=int, default=0,
                    help="OpenSplat saves a PLY every N steps for its PSNR curve "
                    "(default: a tenth of --iterations)")  # fmt: skip
+    p.add_argument("--fresh", action="store_true",
+                   help="redo every part; by default a part an earlier run finished at "
+                   "these --iterations is kept (a run cut off goes on)")  # fmt: skip
     p.add_argument(
         "--max-matched-iterations",
         type=int,
