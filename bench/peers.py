@@ -327,7 +327,7 @@ def opensplat_frame(views) -> tuple:
     return mean, float(1.0 / np.abs(centres - mean).max())
 
 
-def opensplat_draw(path: Path, view, frame: tuple, step: int):
+def opensplat_draw(ply: dict, view, frame: tuple, step: int):
     """A view as OpenSplat's CPU renderer draws its PLY: our own NumPy reading of its
     image formation (projection, EWA with 0.3 px dilation, 3σ boxes, alpha ≤ 0.999,
     its fixed background), with one difference from a standard 3DGS renderer that
@@ -340,10 +340,9 @@ def opensplat_draw(path: Path, view, frame: tuple, step: int):
     import numpy as np
     import torch
 
-    from ptovs.field.ply import read_ply
     from ptovs.raster._sh import eval_sh
 
-    p = read_ply(path)
+    p = ply  # read_ply's dict, read once by the caller for every view
     mean, sc = frame
     means = (p["means"] - mean) * sc
     scales = np.exp(p["log_scales"]) * sc
@@ -433,7 +432,10 @@ def ply_psnr(path: Path, scene, frame: tuple | None = None, step: int = 0) -> di
     out = {"psnr_test": round(float(np.mean(vals)), 3),
            "gaussians": int(field[0].means.shape[0])}  # fmt: skip
     if frame is not None:
-        own = [psnr(opensplat_draw(path, v, frame, step), scene.load_image(v))
+        from ptovs.field.ply import read_ply
+
+        ply = read_ply(path)
+        own = [psnr(opensplat_draw(ply, v, frame, step), scene.load_image(v))
                for v in tests]  # fmt: skip
         out["psnr_test_own"] = round(float(np.mean(own)), 3)
     return out
@@ -492,7 +494,9 @@ def check_render(
         return {"failed": f"OpenSplat wrote no {out / 'val' / f'{last}.png'}"}
     theirs = theirs[..., ::-1].astype("float32") / 255.0
     ours = render_ply(ply_field(out / "splat.ply"), val)
-    own = opensplat_draw(out / "splat.ply", val, frame, last)
+    from ptovs.field.ply import read_ply
+
+    own = opensplat_draw(read_ply(out / "splat.ply"), val, frame, last)
     if ours.shape != theirs.shape:
         return {
             "failed": f"sizes differ: ours {ours.shape}, OpenSplat's {theirs.shape}"

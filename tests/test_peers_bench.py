@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from ptovs.field.losses import psnr
-from ptovs.field.ply import write_ply
+from ptovs.field.ply import read_ply, write_ply
 from ptovs.scene import load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -95,7 +95,7 @@ def test_own_reading_draws_separate_gaussians_as_the_rasterizer_does(
         tmp_path / "g.ply", means, [(0.9, 0.2, 0.1), (0.1, 0.8, 0.2), (0.2, 0.3, 0.9)]
     )
     frame = peers.opensplat_frame([*scene.train_views(), view])
-    own = peers.opensplat_draw(tmp_path / "g.ply", view, frame, step=0)
+    own = peers.opensplat_draw(read_ply(tmp_path / "g.ply"), view, frame, step=0)
     depth = peers.render_ply(peers.ply_field(tmp_path / "g.ply"), view)
     assert own.shape == depth.shape == (view.height, view.width, 3)
     assert np.isfinite(own).all()
@@ -114,7 +114,7 @@ def test_own_reading_keeps_opensplats_scrambled_order(peers, tiny_scene_dir, tmp
                [(0.9, 0.1, 0.1), (0.1, 0.1, 0.9), (0.5, 0.5, 0.5)],
                opacity=0.95, scale=0.3)  # fmt: skip
     frame = peers.opensplat_frame([*scene.train_views(), view])
-    own = peers.opensplat_draw(tmp_path / "g.ply", view, frame, step=0)
+    own = peers.opensplat_draw(read_ply(tmp_path / "g.ply"), view, frame, step=0)
     depth = peers.render_ply(peers.ply_field(tmp_path / "g.ply"), view)
     cy, cx = view.height // 2, view.width // 2
     assert depth[cy, cx, 0] > 0.8 and depth[cy, cx, 2] < 0.2  # the near red in front

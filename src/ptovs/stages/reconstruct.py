@@ -246,10 +246,10 @@ def nerfw_psnr(
     `emb` to start) fitted to the photo's left half, its right half scored. Every
     pixel counts (no labels needed); a photo too narrow to halve scores NaN."""
     half = image.shape[1] // 2
-    left = np.zeros(image.shape[:2], bool)
-    left[:, :half] = True
     if half == 0:
         return float("nan")
+    left = np.zeros(image.shape[:2], bool)
+    left[:, :half] = True
     fit = field.fit_embedding(
         cam, image, left, init=emb.reshape(-1), steps=config.nerfw_steps,
         backend=config.backend,
