@@ -6,8 +6,11 @@ and 16 threads:
 python bench/threads.py --preset small --seed 0 --threads 1 2 4 8 16 --work work/threads
 python bench/threads.py --preset tiny --threads 1 2 --set reconstruct.iterations=300 \
     --timeout 800                                      # a short schedule, a wall budget
+python bench/threads.py --preset landmark --photos 6 --until train-male \
+    --set reconstruct.iterations=120 --threads 2 16 8 4  # real photo sizes, few photos
 
-The `--preset` scene of `--seed` is generated once under --data (kept and reused).
+The `--preset` scene of `--seed` (at `--photos` train photos, when given) is generated
+once under --data (kept and reused); `--until STAGE` ends the chain after that stage.
 Then, one thread count after the other (never two at once), every stage of the chain
 (src/ptovs/pipeline.py's PIPELINE) runs in order, each in its own process, exactly as
 `make all` runs it, in a work folder emptied first (<work>/t<N>: nothing is cached
@@ -58,7 +61,7 @@ from ptovs.pipeline import PIPELINE  # noqa: E402  (stdlib only: torch stays out
 SECTIONS = ("scene", *PIPELINE)  # what a --set item may name
 PRESETS = ("tiny", "small", "bench", "landmark", "scale")  # synth-scene's
 # an earlier threads.json's runs are kept when these (and the CPU) are the same
-SAME = ("preset", "seed", "set", "config", "stages")
+SAME = ("preset", "seed", "photos", "set", "config", "stages")
 SAME_MACHINE = ("cpu_model", "cpu_count")
 
 
@@ -107,12 +110,17 @@ def machine_facts() -> dict:
 
 def scene_folder(args: argparse.Namespace) -> tuple[Path, float | None]:
     """The scene folder, generated when missing; (folder, seconds it took or None)."""
-    scene = args.data / f"{args.preset}_s{args.seed}"
+    name = f"{args.preset}_s{args.seed}"
+    more = []
+    if args.photos is not None:  # synth-scene's name and option for a given count
+        name, more = f"{name}_p{args.photos}", ["--photos", str(args.photos)]
+    scene = args.data / name
     if (scene / "dense").is_dir():
         return scene, None
     t0 = time.perf_counter()
     subprocess.run([sys.executable, "-m", "ptovs", "-q", "synth-scene", str(args.data),
-                    "--preset", args.preset, "--seed", str(args.seed)], check=True)  # fmt: skip
+                    "--preset", args.preset, "--seed", str(args.seed), *more],
+                   check=True)  # fmt: skip
     return scene, round(time.perf_counter() - t0, 1)
 
 
@@ -181,7 +189,7 @@ def fmt_s(rec: dict | None) -> str:
     return f"{rec['wall_s']:.1f}"
 
 
-def print_tables(runs: dict[str, dict]) -> None:
+def print_tables(runs: dict[str, dict], stages: tuple[str, ...] = PIPELINE) -> None:
     """Seconds and speed-up a stage and thread count, then peak RSS."""
     ns = sorted(runs, key=int)
     measured = [n for n in ns if any("skipped" not in r for r in runs[n].values())]
@@ -191,7 +199,7 @@ def print_tables(runs: dict[str, dict]) -> None:
     base = next((n for n in measured if any(map(ok, runs[n].values()))), measured[0])
 
     def chain(n: str) -> dict | None:
-        recs = [runs[n].get(s) for s in PIPELINE]
+        recs = [runs[n].get(s) for s in stages]
         if all(ok(r) for r in recs):
             return {"wall_s": sum(r["wall_s"] for r in recs), "exit": 0}
         return None
@@ -199,7 +207,7 @@ def print_tables(runs: dict[str, dict]) -> None:
     cols = [c for n in measured for c in (f"{n} thr s", f"×{n} vs {base}")]
     print("| stage | " + " | ".join(cols) + " |")
     print("|---|" + "---:|" * len(cols))
-    for name in (*PIPELINE, "chain"):
+    for name in (*stages, "chain"):
         cells = []
         ref = runs[base].get(name) if name != "chain" else chain(base)
         for n in measured:
@@ -211,7 +219,7 @@ def print_tables(runs: dict[str, dict]) -> None:
     print()
     print("| peak RSS MB | " + " | ".join(f"{n} thr" for n in measured) + " |")
     print("|---|" + "---:|" * len(measured))
-    for name in PIPELINE:
+    for name in stages:
         cells = []
         for n in measured:
             rec = runs[n].get(name)
@@ -292,8 +300,15 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, nargs="+", default=[1, 2, 4, 8, 16])
     p.add_argument("--work", type=Path, default=ROOT / "work" / "threads")
+    p.add_argument("--photos", type=int, default=None,
+                   help="the preset's world at this many train photos (synth-scene "
+                   "--photos; default: the preset's own count)")  # fmt: skip
+    p.add_argument("--until", choices=PIPELINE, default=PIPELINE[-1],
+                   help="the last stage run (default: the whole chain); the chain's "
+                   "total then covers the stages up to it")  # fmt: skip
     add_run_options(p, "scene is")
     args = p.parse_args()
+    stages = PIPELINE[: PIPELINE.index(args.until) + 1]
     t_start = time.perf_counter()
     deadline = None if args.timeout is None else t_start + args.timeout
     check_run_options(p, args)
@@ -302,8 +317,8 @@ def main() -> None:
     path = args.work / "threads.json"
     facts = machine_facts()
     results = {"machine": facts, "preset": args.preset, "seed": args.seed,
-               "set": list(args.set), "config": str(args.config),
-               "stages": list(PIPELINE), "runs": {}, "skipped": {}}  # fmt: skip
+               "photos": args.photos, "set": list(args.set), "config": str(args.config),
+               "stages": list(stages), "runs": {}, "skipped": {}}  # fmt: skip
     old = earlier_runs(path, results, SAME)
     if old:  # an earlier run of the same setup keeps its other thread counts
         results["runs"] = old.get("runs", {})
@@ -334,7 +349,7 @@ def main() -> None:
         logs.mkdir(parents=True)
         env = thread_env(n)
         t0, stop = time.perf_counter(), ""
-        for stage in PIPELINE:
+        for stage in stages:
             left = None if deadline is None else deadline - time.perf_counter()
             if not stop and left is not None and left <= 0:
                 stop = "the --timeout budget ran out"
@@ -351,10 +366,11 @@ def main() -> None:
         save()
 
     print(f"\n{args.preset} seed {args.seed}"
+          + (f", {args.photos} photos" if args.photos is not None else "")
           + (f", --set {' '.join(args.set)}" if args.set else "")
           + f"; {facts['cpu_model'] or facts['processor']}, {cpus} CPUs; "
           f"torch {facts.get('torch')} ({facts.get('torch_threads')} threads by default)\n")  # fmt: skip
-    print_tables(results["runs"])
+    print_tables(results["runs"], tuple(stages))
     print(f"results: {path}")
 
 
