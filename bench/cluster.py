@@ -18,7 +18,10 @@ Parts (each from an empty work folder, default config, one after the other):
   paper   no run: the seven PT-OVS scenes on a 16-node cluster from `stages` and
           bench/extract_gpu.py's per-photo backend cost (the model is in paper_part)
   growth  no run: the same from each stage's measured growth at a real photo size
-          (bench/growth.py's results, copied to <work>/growth.json; growth_part)
+          (bench/growth.py's results, copied to <work>/growth.json; growth_part),
+          each CPU stage sped up by its measured gain at RESOURCES' threads over 2
+          (bench/threads.py's results on a many-core machine, copied to
+          <work>/threads.json, when there)
 Results: <work>/cluster.json (a part's entry is replaced when it is rerun).
 """
 
@@ -214,8 +217,23 @@ def growth_part(root: Path) -> dict:
     the figures lean long): a stage's time at n photos is a·n^b fitted to its
     measured sizes (2 threads, our machine), extract-features' taken instead from
     the real backends on a GPU as in `paper` (the stand-in's time says nothing of
-    SAM's). Peak memory: the largest measured, and a·n^b at n when b > 0.05."""
+    SAM's). Peak memory: the largest measured, and a·n^b at n when b > 0.05.
+    Threads: a CPU stage's time is divided by its speed-up at RESOURCES' threads
+    over 2 threads, measured on one machine (<root>/threads.json from
+    bench/threads.py; 1 where the stage asks for 2 threads or was not measured)."""
+    from ptovs.pipeline import RESOURCES
+
     growth = json.loads((root / "growth.json").read_text())
+    thr_path = root / "threads.json"
+    thr = json.loads(thr_path.read_text())["runs"] if thr_path.exists() else {}
+
+    def speedup(stage: str) -> float:
+        base = thr.get("2", {}).get(stage, {})
+        want = thr.get(str(RESOURCES[stage].threads), {}).get(stage, {})
+        if base.get("exit") == 0 and want.get("exit") == 0 and want["wall_s"] > 0:
+            return base["wall_s"] / want["wall_s"]
+        return 1.0
+
     runs = [r for r in growth["runs"].values()
             if r.get("preset") == "landmark" and r.get("photos")]  # fmt: skip
 
@@ -233,6 +251,8 @@ def growth_part(root: Path) -> dict:
         am, bm = fit([(n, rec["peak_rss_mb"]) for n, rec in recs])
         model[stage] = {"a": a, "b": round(b, 3), "mem_a": am, "mem_b": round(bm, 3),
                         "sizes": [n for n, _ in recs],
+                        "threads": RESOURCES[stage].threads,
+                        "speedup": round(speedup(stage), 3),
                         "peak_mb": max(rec["peak_rss_mb"] for _, rec in recs)}  # fmt: skip
 
     def chain(n: int) -> dict[str, float]:
@@ -241,7 +261,7 @@ def growth_part(root: Path) -> dict:
             if stage == "extract-features":
                 out["extract-features (GPU)"] = n * IMAGES_PER_VIEW * SAM_CLIP_GPU_S
             else:
-                out[stage] = m["a"] * n ** m["b"]
+                out[stage] = m["a"] * n ** m["b"] / m["speedup"]
         return out
 
     def memory(n: int) -> dict[str, float]:

@@ -189,17 +189,22 @@ class Resources:
 # makes more passes instead), and the Gaussians follow the photos (55 a photo at
 # 763, 52 at 2,934): 1.3 MB a photo; render-appearances renders those Gaussians,
 # 0.25 MB a photo (808 and 1,289 MB at 763 and 2,934 photos). minutes: at least 3x
-# the 763-photo wall time on our 2 cores (a cluster core may be slower).
+# the 763-photo wall time on our 2 cores (a cluster core may be slower). threads:
+# measured on 16 cores at the landmark photo size (bench/threads.py, 2026-11-27):
+# reconstruct ran 1.97x faster at 8 threads than at 2 (2.56x at 16); every other stage
+# gained at most 1.29x at 8 or 16 threads, and extract-features, uncertainty and
+# train-ae ran slower (0.77-0.93x), so they ask for 2. query was not measured at that
+# size (1.43x from 1 to 2 threads on small photos) and asks for 2.
 RESOURCES: dict[str, Resources] = {
     "reconstruct": Resources(threads=8, peak_mb=5112, minutes=60, mb_per_photo=2.9),
     "render-appearances": Resources(
-        threads=4, peak_mb=808, minutes=20, mb_per_photo=0.25
+        threads=2, peak_mb=808, minutes=20, mb_per_photo=0.25
     ),
-    "extract-features": Resources(threads=4, peak_mb=571, minutes=60, device="device"),
-    "uncertainty": Resources(threads=4, peak_mb=715, minutes=30),
-    "train-ae": Resources(threads=4, peak_mb=1257, minutes=30, mb_per_photo=1.1),
-    "train-male": Resources(threads=8, peak_mb=7509, minutes=45, mb_per_photo=1.3),
-    "query": Resources(threads=4, peak_mb=1141, minutes=20, device="device"),
+    "extract-features": Resources(threads=2, peak_mb=571, minutes=60, device="device"),
+    "uncertainty": Resources(threads=2, peak_mb=715, minutes=30),
+    "train-ae": Resources(threads=2, peak_mb=1257, minutes=30, mb_per_photo=1.1),
+    "train-male": Resources(threads=2, peak_mb=7509, minutes=45, mb_per_photo=1.3),
+    "query": Resources(threads=2, peak_mb=1141, minutes=20, device="device"),
     "evaluate": Resources(threads=1, peak_mb=424, minutes=10),
 }
 
