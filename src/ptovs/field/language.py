@@ -182,11 +182,12 @@ def feature_lift_sums(
     w_mat = torch.sparse_csr_tensor(
         indptr.long(), pix.long(), val.float(), size=(n, hw), check_invariants=True
     )
-    gs = torch.sparse.mm(w_mat, s_mat)  # [P, K]: (Gaussian, segment) weights
-    g_ptr = gs.crow_indices().numpy()
-    c_of = gs.col_indices().numpy()
+    # [P, K] (Gaussian, segment) weights. In COO, not CSR: torch's CPU product of two
+    # sparse CSR tensors keeps ~16 MB a call at 153k Gaussians (torch 2.13; measured,
+    # docs/benchmarks.md), which killed a 2,934-photo lift at 23.7 GB.
+    gs = torch.sparse.mm(w_mat.to_sparse_coo(), s_mat.to_sparse_coo()).coalesce()
+    g_of, c_of = gs.indices().numpy()  # coalesced: row-major, distinct pairs
     vals = gs.values().numpy()
-    g_of = np.repeat(np.arange(n, dtype=np.int64), np.diff(g_ptr))
     row = (g_of * n_lv + level_of[c_of]) * n_app + slot_of[c_of]
     order = np.argsort(row * n_cols + c_of)  # rows, then columns (sorted CSR)
     ptr = np.zeros(n * n_lv * n_app + 1, np.int64)  # CSR over every output row
