@@ -15,6 +15,7 @@ from ptovs.artifacts import Artifact, read_json_dataset
 from ptovs.cli import main
 from ptovs.field import language as lang
 from ptovs.field.language import load_codes
+from ptovs.memory import release
 from ptovs.nets.autoencoder import LanguageAE, load_autoencoder
 from ptovs.raster import blend_weights, render
 from ptovs.stages import train_ae as tae
@@ -582,12 +583,18 @@ def test_feature_lift_sums_keeps_no_memory_between_calls():
     valid = np.stack([s.reshape(3, -1).T >= 0 for s in segs], axis=-1)
     m = lang.mask_weights(valid, None, None)
     out = lang.feature_lift_sums(wt_csr, segs, feats, m)
-    for _ in range(3):  # warm: the allocator's pools reach their working size
-        lang.feature_lift_sums(wt_csr, segs, feats, m, out=out)
-    before = _resident_mb()
-    for _ in range(20):
-        lang.feature_lift_sums(wt_csr, segs, feats, m, out=out)
-    assert _resident_mb() - before < 100
+
+    def calls(k: int) -> float:  # resident MB after k more calls, freed pages returned
+        for _ in range(k):
+            lang.feature_lift_sums(wt_csr, segs, feats, m, out=out)
+        release()  # as train-male does after every view
+        return _resident_mb()
+
+    calls(3)  # warm: the allocator's pools reach their working size
+    settled = calls(10)
+    # a leak grows with every call (the CSR product: ~985 MB over these 20); the
+    # allocator's noise does not (up to ~120 MB seen inside the whole suite)
+    assert calls(20) - settled < 250
     assert torch.isfinite(out).all()
 
 
