@@ -6,8 +6,8 @@ and 16 threads:
 python bench/threads.py --preset small --seed 0 --threads 1 2 4 8 16 --work work/threads
 python bench/threads.py --preset tiny --threads 1 2 --set reconstruct.iterations=300 \
     --timeout 800                                      # a short schedule, a wall budget
-python bench/threads.py --preset landmark --photos 6 --until train-male \
-    --set reconstruct.iterations=120 --threads 2 16 8 4  # real photo sizes, few photos
+python bench/threads.py --preset landmark --photos 20 --until train-male \
+    --set reconstruct.iterations=80 --threads 2 16 8 4  # real photo sizes, few photos
 
 The `--preset` scene of `--seed` (at `--photos` train photos, when given) is generated
 once under --data (kept and reused); `--until STAGE` ends the chain after that stage.
@@ -370,7 +370,7 @@ def main() -> None:
           + (f", --set {' '.join(args.set)}" if args.set else "")
           + f"; {facts['cpu_model'] or facts['processor']}, {cpus} CPUs; "
           f"torch {facts.get('torch')} ({facts.get('torch_threads')} threads by default)\n")  # fmt: skip
-    print_tables(results["runs"], tuple(stages))
+    print_tables(results["runs"], stages)
     print(f"results: {path}")
 
 

@@ -568,8 +568,8 @@ def _resident_mb() -> float:
 @pytest.mark.skipif(not Path("/proc/self/statm").exists(), reason="needs /proc")
 def test_feature_lift_sums_keeps_no_memory_between_calls():
     """Repeated calls leave the resident memory where it was. torch's CPU product of
-    two sparse CSR tensors kept ~100 bytes a Gaussian row a call (a 2,934-photo lift
-    was killed at 23.7 GB); at 150k rows that is ~15 MB a call, 300 MB over 20."""
+    two sparse CSR tensors kept memory on every call (a 2,934-photo lift was killed
+    at 23.7 GB); here that is ~1 GB over the 20 measured calls."""
     rng = np.random.default_rng(0)
     n, h, w, per = 150_000, 120, 160, 8
     base = rng.integers(0, h * w, n)[:, None]  # per distinct, sorted pixels a row
