@@ -193,10 +193,14 @@ bench-multiapp: setup
 # how each stage's time, peak RSS and output quality grow with the collection (issue
 # 43 item 2): the landmark world at 100, 200, 400 and 763 photos, one size at a time,
 # the default chain on 2 threads; scenes under $(WORK)/growth/data, results in
-# $(WORK)/growth/growth.json, the plot beside it (published under docs/img with the figures)
+# $(WORK)/growth/growth.json, the plot beside it (published under docs/img with the figures);
+# then train-male's peak at 763 and 2,934 photos' Gaussians on the 100-photo chain
+# (bench/male_probe.py: the 2,934-photo chain itself is about 5 h)
 bench-growth: setup
 	$(BIN)/python bench/growth.py --preset landmark --seed 0 --photos 100 200 400 763 \
 	  --threads 2 --work $(QWORK)/growth --plot
+	$(BIN)/python bench/male_probe.py --work $(QWORK)/growth/landmark_s0_p100 \
+	  --data $(QWORK)/growth/data/landmark_s0_p100 --gaussians 0 42263 153217
 
 # the one-off comparisons of issue 40, on the instrument's scenes and cache: the
 # segmenter sweep on dev and the three segmenters on test; the old front end and
