@@ -203,7 +203,7 @@ RESOURCES: dict[str, Resources] = {
     "extract-features": Resources(threads=2, peak_mb=571, minutes=60, device="device"),
     "uncertainty": Resources(threads=2, peak_mb=715, minutes=30),
     "train-ae": Resources(threads=2, peak_mb=1257, minutes=30, mb_per_photo=1.1),
-    "train-male": Resources(threads=2, peak_mb=7509, minutes=45, mb_per_photo=1.3),
+    "train-male": Resources(threads=2, peak_mb=4335, minutes=45, mb_per_photo=1.6),
     "query": Resources(threads=2, peak_mb=1141, minutes=20, device="device"),
     "evaluate": Resources(threads=1, peak_mb=424, minutes=10),
 }
