@@ -88,3 +88,22 @@ def copy_work(src: Path, dst: Path) -> Path:
     """A private copy of a work dir (artifacts, no locks)."""
     shutil.copytree(src, dst, ignore=shutil.ignore_patterns("*.lock"))
     return dst
+
+
+def bench_module(name: str):
+    """Import bench/<name>.py (a script, not a package) with bench/ on sys.path, as
+    its neighbours import each other; yields the module (a fixture's body)."""
+    import importlib.util
+    import sys
+
+    bench = Path(__file__).resolve().parents[1] / "bench"
+    sys.path.insert(0, str(bench))
+    try:
+        spec = importlib.util.spec_from_file_location(
+            f"bench_{name}", bench / f"{name}.py"
+        )
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        yield mod
+    finally:
+        sys.path.remove(str(bench))

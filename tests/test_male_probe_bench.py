@@ -3,31 +3,17 @@ itself runs the stage at a landmark's size; this checks only what it builds."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
 import torch
 
+from conftest import bench_module
 from ptovs.field.render import WildField
 from ptovs.raster import Gaussians
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def probe():
-    sys.path.insert(0, str(ROOT / "bench"))  # it imports its neighbours
-    try:
-        spec = importlib.util.spec_from_file_location(
-            "bench_male_probe", ROOT / "bench" / "male_probe.py"
-        )
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-        yield mod
-    finally:
-        sys.path.remove(str(ROOT / "bench"))
+    yield from bench_module("male_probe")
 
 
 def _field(n: int) -> WildField:

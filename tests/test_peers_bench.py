@@ -4,32 +4,20 @@ never builds or runs OpenSplat; the benchmark does."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from conftest import bench_module
 from ptovs.field.losses import psnr
 from ptovs.field.ply import read_ply, write_ply
 from ptovs.scene import load_scene
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
 def peers():
-    sys.path.insert(0, str(ROOT / "bench"))  # peers imports its neighbours
-    try:
-        spec = importlib.util.spec_from_file_location(
-            "bench_peers", ROOT / "bench" / "peers.py"
-        )
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-        yield mod
-    finally:
-        sys.path.remove(str(ROOT / "bench"))
+    yield from bench_module("peers")
 
 
 def test_project_holds_the_train_photos_their_cameras_and_every_point(
