@@ -129,3 +129,40 @@ def test_build_refuses_what_is_not_an_opensplat_tree(peers, tmp_path):
     with pytest.raises(SystemExit, match="no source of nlohmann_json, cxxopts"):
         peers.build_opensplat(src, tmp_path / "cache", tmp_path / "deps", 1)
     assert not (tmp_path / "cache").exists()  # nothing built, nothing cached
+
+
+def test_reach_is_ptovs_time_to_opensplats_best(peers):
+    theirs = [{"s": 100.0, "psnr_test": 15.0, "psnr_test_own": 18.0},
+              {"s": 200.0, "psnr_test": 17.0, "psnr_test_own": 20.0},
+              {"s": 300.0, "psnr_test": 16.0, "psnr_test_own": 22.0}]  # fmt: skip
+    ours = [{"step": 500, "s": 80.0, "psnr_test": 25.0},
+            {"step": 100, "s": 20.0, "psnr_test": 16.0},
+            {"step": 200, "s": 40.0, "psnr_test": 24.0}]  # fmt: skip
+    own = peers.reach(ours, theirs, "psnr_test_own")  # its best: 22 dB at 300 s
+    assert own["target_psnr"] == 22.0 and own["opensplat_s"] == 300.0
+    assert own["ptovs_s"] == pytest.approx(35.0)  # 20 s + 6/8 of the 20 s to 24 dB
+    assert own["speedup"] == pytest.approx(300.0 / 35.0, abs=0.01)
+    assert own["bound"] is False
+    depth = peers.reach(ours, theirs, "psnr_test")  # its best 17 dB at 200 s
+    assert depth["ptovs_s"] == pytest.approx(22.5) and depth["bound"] is False
+    # ptovs's shortest run already past the target: its time is an upper bound
+    low = peers.reach([{"step": 50, "s": 10.0, "psnr_test": 18.0}], theirs, "psnr_test")
+    assert low["ptovs_s"] == 10.0 and low["speedup"] == 20.0 and low["bound"] is True
+    # never reached: no ratio
+    none = peers.reach(
+        [{"step": 50, "s": 10.0, "psnr_test": 12.0}], theirs, "psnr_test"
+    )
+    assert none["ptovs_s"] is None and none["speedup"] is None
+
+
+def test_table_gives_the_reach_rows(peers):
+    rec = {"ptovs_reach_50": {"wall_s": 30.0, "iterations": 50, "s_per_iteration": 0.4,
+                              "peak_rss_mb": 800, "gaussians": 3000, "psnr_test": 20.0},
+           "reach": {"psnr_test_own": {"target_psnr": 22.19, "opensplat_s": 881.7,
+                                       "ptovs_s": 90.0, "speedup": 9.8, "bound": False},
+                     "psnr_test": {"target_psnr": 17.27, "opensplat_s": 243.7,
+                                   "ptovs_s": 30.0, "speedup": 8.12, "bound": True}}}  # fmt: skip
+    text = peers.table({"scenes": {"herzjesu_p8": rec}})
+    assert "| herzjesu_p8 | ptovs (in the wild), fewer steps | 50 | 30.0 |" in text
+    assert "| herzjesu_p8 | its own renderer | 22.19 | 881.7 | 90.0 | 9.8× |" in text
+    assert "| herzjesu_p8 | PLY, depth order | 17.27 | 243.7 | 30.0 | ≥ 8.12× |" in text
