@@ -155,14 +155,58 @@ def test_reach_is_ptovs_time_to_opensplats_best(peers):
     assert none["ptovs_s"] is None and none["speedup"] is None
 
 
+def test_reach_table_reads_each_variants_whole_runs_at_these_iterations(peers):
+    curve = [{"s": 100.0, "psnr_test": 15.0, "psnr_test_own": 18.0},
+             {"s": 200.0, "psnr_test": 14.0, "psnr_test_own": 24.0}]  # fmt: skip
+
+    def run(steps, s, db, n=500):
+        return {"iterations": steps, "wall_s": s, "psnr_test": db, "for_iterations": n}
+
+    rec = {"opensplat": {"curve": curve},
+           "ptovs": run(500, 250.0, 23.0),
+           "ptovs_at_opensplat_time": run(1800, 1000.0, 26.0),  # past 24 dB
+           "ptovs_reach_50": run(50, 40.0, 14.0),
+           "ptovs_reach_100": run(100, 60.0, 16.0, n=2500),  # another --iterations
+           "ptovs_plain": run(500, 100.0, 20.0),
+           "ptovs_plain_reach_50": run(50, 20.0, 19.0),
+           "ptovs_plain_at_opensplat_time": {"skipped": "too many"}}  # fmt: skip
+    out = peers.reach_table(rec, 500)
+    assert out["for_iterations"] == 500
+    wild = out["ptovs"]["psnr_test_own"]  # 24 dB: between 500 (23) and 1,800 steps (26)
+    assert wild["ptovs_s"] == pytest.approx(250.0 + 750.0 / 3, abs=0.1)
+    assert out["ptovs"]["psnr_test"]["ptovs_s"] == pytest.approx(
+        40.0 + 210.0 / 9, abs=0.1
+    )
+    plain = out["ptovs_plain"]
+    assert plain["psnr_test"]["ptovs_s"] == 20.0 and plain["psnr_test"]["bound"]
+    assert plain["psnr_test_own"]["speedup"] is None  # 20 dB never reaches 24
+
+
 def test_table_gives_the_reach_rows(peers):
-    rec = {"ptovs_reach_50": {"wall_s": 30.0, "iterations": 50, "s_per_iteration": 0.4,
-                              "peak_rss_mb": 800, "gaussians": 3000, "psnr_test": 20.0},
-           "reach": {"psnr_test_own": {"target_psnr": 22.19, "opensplat_s": 881.7,
-                                       "ptovs_s": 90.0, "speedup": 9.8, "bound": False},
-                     "psnr_test": {"target_psnr": 17.27, "opensplat_s": 243.7,
-                                   "ptovs_s": 30.0, "speedup": 8.12, "bound": True}}}  # fmt: skip
+    run = {"wall_s": 30.0, "iterations": 50, "s_per_iteration": 0.4,
+           "peak_rss_mb": 800, "gaussians": 3000, "psnr_test": 20.0}  # fmt: skip
+    rec = {"ptovs_reach_50": run, "ptovs_plain_reach_50": {**run, "wall_s": 12.0},
+           "reach": {"ptovs": {"psnr_test_own": {"target_psnr": 22.19, "opensplat_s": 881.7,
+                                                 "ptovs_s": 90.0, "speedup": 9.8,
+                                                 "bound": False},
+                               "psnr_test": {"target_psnr": 17.27, "opensplat_s": 243.7,
+                                             "ptovs_s": 30.0, "speedup": 8.12,
+                                             "bound": True}},
+                     "ptovs_plain": {"psnr_test_own": {"target_psnr": 22.19,
+                                                       "opensplat_s": 881.7,
+                                                       "ptovs_s": None, "speedup": None,
+                                                       "bound": False}}}}  # fmt: skip
     text = peers.table({"scenes": {"herzjesu_p8": rec}})
     assert "| herzjesu_p8 | ptovs (in the wild), fewer steps | 50 | 30.0 |" in text
-    assert "| herzjesu_p8 | its own renderer | 22.19 | 881.7 | 90.0 | 9.8× |" in text
-    assert "| herzjesu_p8 | PLY, depth order | 17.27 | 243.7 | 30.0 | ≥ 8.12× |" in text
+    assert (
+        "| herzjesu_p8 | ptovs, plain 3DGS (wild=false), fewer steps | 50 | 12.0 |"
+        in text
+    )
+    assert ("| herzjesu_p8 | ptovs (in the wild) | its own renderer | 22.19 | 881.7 | "
+            "90.0 | 9.8× |") in text  # fmt: skip
+    assert ("| herzjesu_p8 | ptovs (in the wild) | PLY, depth order | 17.27 | 243.7 | "
+            "30.0 | ≥ 8.12× |") in text  # fmt: skip
+    assert (
+        "| herzjesu_p8 | ptovs, plain 3DGS (wild=false) | its own renderer | 22.19 |"
+        " 881.7 | None | not in its runs |" in text
+    )
