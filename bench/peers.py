@@ -37,9 +37,9 @@ the like-for-like peer of OpenSplat. Then the reach runs (`--reach-steps`, defau
 tenth, a fifth, two fifths and three fifths of `--iterations`): whole ptovs runs at
 fewer steps, the default and plain 3DGS, so that each one's time to OpenSplat's best
 held-out PSNR is a measured figure and not a bound (the default's time-matched run is
-one more point past `--iterations`). Then the time-matched runs: each tool gets the other's wall
-time (as iterations at its own measured rate). Results: <work>/peers.json, then a
-markdown table.
+one more point past `--iterations`). Then the time-matched runs: each tool gets the
+other's wall time (as iterations at its own measured rate). Results:
+<work>/peers.json, then a markdown table.
 """
 
 from __future__ import annotations
