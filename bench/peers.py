@@ -617,9 +617,9 @@ def run_scene(
                 binary, proj, args.work / "os" / tag / "check_trained", scene,
                 tests[0], t, frame, start=Path(run["ply"]), start_step=n))  # fmt: skip
         once("ptovs", lambda: run_ours(args, scene_dir, n, f"{tag}_wild"))
-        once("ptovs_plain",
-             lambda: run_ours(args, scene_dir, n, f"{tag}_plain", "wild=false"))  # fmt: skip
-        for ours in ("ptovs", "ptovs_plain"):  # against either reading of OpenSplat's
+        once("ptovs_plain", lambda: run_ours(args, scene_dir, n, f"{tag}_plain",
+                                             *VARIANTS["ptovs_plain"]))  # fmt: skip
+        for ours in VARIANTS:  # against either reading of OpenSplat's
             for reading in ("psnr_test", "psnr_test_own"):
                 os_s = time_to(run["curve"], rec[ours]["psnr_test"], reading)
                 rec[ours][f"opensplat_s_to_same_psnr ({reading})"] = os_s
