@@ -135,13 +135,6 @@ def _parts(view, need: int) -> list[tuple[int, np.ndarray]]:
     ]
 
 
-def _scaled(cam: Camera, scale: int) -> Camera:
-    """The camera with `scale` times the pixels on each side (same view)."""
-    K = cam.K.copy()
-    K[:2] *= scale
-    return Camera(K, cam.cam_from_world, cam.width * scale, cam.height * scale)
-
-
 def _azimuth(world, cam: Camera) -> float:
     """Degrees between the camera and the landmark's front (-y), about the up axis."""
     d = cam.centre - world.center
@@ -206,7 +199,7 @@ def collect(
         rows.setdefault(row, []).append(((ci, pid, label[pid], *extra), c8))
 
     for ci in cams:
-        cam = _scaled(plan.cams[ci], scale)
+        cam = plan.cams[ci].scaled(scale)
         rec = {"image_id": ci, **cam.to_dict()}
         need = max(64 * scale * scale, int(MIN_FRAC * cam.width * cam.height))
         clean, _ = rerender(world, rec, "neutral", "none", seed=seed)

@@ -40,10 +40,7 @@ def _photo(scene: Path, rec: dict, scale: int) -> tuple[np.ndarray, np.ndarray]:
     from ptovs.synthetic.world import Camera
 
     world, _ = load_truth(scene)
-    cam = Camera.from_dict(rec)
-    K = cam.K.copy()
-    K[:2] *= scale
-    big = Camera(K, cam.cam_from_world, cam.width * scale, cam.height * scale)
+    big = Camera.from_dict(rec).scaled(scale)
     view, _ = rerender(world, {**rec, **big.to_dict()}, "own", "own", seed=0)
     return view.image, view.part_id
 

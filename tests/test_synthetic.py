@@ -503,3 +503,27 @@ def test_landmark_preset_and_photos_make_one_world_at_any_size(tmp_path: Path) -
     assert all(640 <= max(v.width, v.height) <= 760 for v in scene.views)
     names = {v.name for v in scene.views}
     assert names == {f"{plan.stems[i]}.jpg" for i in small}
+
+
+def test_small_3x_is_small_photographed_at_three_times_the_side() -> None:
+    """`small-3x` (issue 41's instrument at the stand-in's calibration size): the
+    world, cameras, evaluation views and screen of `small`, with 9x the pixels."""
+    from ptovs.synthetic.generate import plan_scene
+
+    one, three = plan_scene("small", 7), plan_scene("small-3x", 7)
+    assert PRESETS["small-3x"].scale == 3 and PRESETS["small"].scale == 1
+    assert three.queries == one.queries and three.distractor == one.distractor
+    assert three.eval_ids == one.eval_ids and three.test_ids == one.test_ids
+    assert three.stems == one.stems
+    assert {k: v.status for k, v in three.screen.items()} == {
+        k: v.status for k, v in one.screen.items()
+    }
+    for a, b in zip(one.cams, three.cams, strict=True):
+        assert (b.width, b.height) == (3 * a.width, 3 * a.height)
+        np.testing.assert_array_equal(b.cam_from_world, a.cam_from_world)
+        np.testing.assert_allclose(b.K[:2], 3 * a.K[:2])
+        np.testing.assert_array_equal(b.K[2], a.K[2])
+        # a world point lands at 3x its pixel position
+        X = b.centre[None] + 5.0 * b.R[2][None]
+        np.testing.assert_allclose(b.project(X)[0], 3 * a.project(X)[0], rtol=1e-9)
+    assert one.cams[0].scaled(1) is one.cams[0]

@@ -256,11 +256,12 @@ def main(
 @click.argument("out", type=click.Path(path_type=Path))
 @click.option(
     "--preset",
-    type=click.Choice(["tiny", "small", "bench", "landmark", "scale"]),
+    type=click.Choice(["tiny", "small", "small-3x", "bench", "landmark", "scale"]),
     default="tiny",
     show_default=True,
     help="Scene size: tiny (CI, ~12 views), small (the accuracy benchmark, ~48 "
-    "views), bench (~80 views), landmark (763 views of 640-760 px, a "
+    "views), small-3x (small's scenes at 3x the side, 528-768 px), bench (~80 "
+    "views), landmark (763 views of 640-760 px, a "
     "Brandenburg-sized collection), scale (~3,000 small views).",
 )
 @click.option(

@@ -54,6 +54,14 @@ class Camera:
             v = self.K[1, 1] * xc[1] / z + self.K[1, 2]
         return np.stack([u, v], axis=1), z
 
+    def scaled(self, scale: int) -> Camera:
+        """The same view with `scale` times the pixels on each side."""
+        if scale == 1:
+            return self
+        K = self.K.copy()
+        K[:2] *= scale
+        return Camera(K, self.cam_from_world, self.width * scale, self.height * scale)
+
     def window(self, i0: int, i1: int, j0: int, j1: int) -> Camera:
         """The camera of the pixel rows i0:i1, columns j0:j1 of this image.
 
