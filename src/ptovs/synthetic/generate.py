@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import logging
@@ -139,22 +140,6 @@ PRESETS: dict[str, Preset] = {
         track_keep=1.0,
         swatch_px=64,
     ),
-    # small's scenes photographed at three times the side (528-768 px, parts 60-250
-    # px): the same worlds and cameras as small, at the photo size the stand-in
-    # version 2 was calibrated at (issue 41) and near PT-OVS's (about 700 px)
-    "small-3x": Preset(
-        n_train=48,
-        n_test=4,
-        n_eval=20,
-        n_cand=30,
-        long_side=(176, 256),
-        n_parts=(5, 7),
-        aa=5,
-        points_per_image=100,
-        track_keep=1.0,
-        swatch_px=64,
-        scale=3,
-    ),
     "bench": Preset(
         n_train=80,
         n_test=8,
@@ -198,6 +183,12 @@ PRESETS: dict[str, Preset] = {
         swatch_px=24,
     ),
 }
+
+
+# small's scenes photographed at three times the side (528-768 px, parts 60-250 px):
+# the same worlds and cameras as small, at the photo size the stand-in version 2 was
+# calibrated at (issue 41) and near PT-OVS's (about 700 px)
+PRESETS["small-3x"] = dataclasses.replace(PRESETS["small"], scale=3)
 
 
 def _rng(seed: int, *stream: int) -> np.random.Generator:
