@@ -193,7 +193,7 @@ bench-multiapp: setup
 
 # the same at the photo size stand-in 2 was calibrated at (issue 41, amendment 3):
 # small's scenes at 3x the side, fresh seeds dev 120-128, test 129-137. The front
-# end alone (MULTIAPP3X_LABELS=2d 2d-best 2d-truth) takes about 40 min; each chain
+# end alone (MULTIAPP3X_LABELS=2d 2d-best 2d-truth) takes about 50 min; each chain
 # label costs many times that (docs/benchmarks.md, "The instrument at the
 # calibration's photo size"). Resumes where a killed run stopped.
 MULTIAPP3X_LABELS ?= 2d 2d-best 2d-truth

@@ -524,6 +524,6 @@ def test_small_3x_is_small_photographed_at_three_times_the_side() -> None:
         np.testing.assert_allclose(b.K[:2], 3 * a.K[:2])
         np.testing.assert_array_equal(b.K[2], a.K[2])
         # a world point lands at 3x its pixel position
-        X = b.centre[None] + 5.0 * b.R[2][None]
+        X = (b.centre + 5.0 * b.R[2] + 0.4 * b.R[0] - 0.3 * b.R[1])[None]
         np.testing.assert_allclose(b.project(X)[0], 3 * a.project(X)[0], rtol=1e-9)
     assert one.cams[0].scaled(1) is one.cams[0]
