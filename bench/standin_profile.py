@@ -36,7 +36,10 @@ shape bias on the conflict crops (decisions for the part's own phrase over
 decisions for the phrase of the texture it wears), the view change (clean crops by
 the camera's azimuth from the landmark's front), and how independent the errors of
 two daylight renders of the same crop are (error lift: P(wrong in B | wrong in A)
-/ P(wrong in B); 1 is independent).
+/ P(wrong in B); 1 is independent). On the clean crops, the relevancy rows
+(amendment 4): the pipeline's relevancy (min over its canonical phrases of
+sigmoid(tau (cos q - cos c)), tau = 10) of the crop's own phrase and, per crop, the
+median over the scene's other part phrases; each row is the median over crops.
 """
 
 from __future__ import annotations
@@ -69,6 +72,7 @@ from ptovs.synthetic.generate import (  # noqa: E402
 from ptovs.synthetic.world import Camera, neutral_appearance  # noqa: E402
 from ptovs.synthetic.world.appearance import sample_appearance  # noqa: E402
 
+TEMPERATURE = 10.0  # the pipeline's relevancy temperature (query's default)
 MIN_FRAC = 0.004  # a part needs 0.4 % of the image (and 64 px) to be cut
 CROP_ROWS = {  # crop-level degradations: name -> function of a [224, 224, 3] crop
     "blur-3": lambda c, r: _remask(c, cv2.GaussianBlur(c, (0, 0), 3.0)),
@@ -263,19 +267,38 @@ def collect(
     return {"seed": seed, "world": world, "phrases": phrases, "rows": rows}
 
 
+def relevancies(cos: np.ndarray, canon: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """[n, 2]: each crop's relevancy of its own phrase and the median relevancy of
+    the other phrases, from its cosines with the phrases [n, K] and with the
+    canonical phrases [n, C] (the pipeline's rule: `ptovs.field.relevancy`)."""
+    rel = 1.0 / (1.0 + np.exp(-TEMPERATURE * (cos - canon.max(1, keepdims=True))))
+    own = rel[np.arange(len(rel)), truth]
+    others = np.ma.masked_array(rel, np.eye(rel.shape[1], dtype=bool)[truth])
+    return np.stack([own, np.ma.median(others, axis=1).filled(np.nan)], 1)
+
+
 def score(col: dict, version: int) -> dict:
-    """Each crop's predicted phrase under the stand-in of `version`."""
+    """Each crop's predicted phrase under the stand-in of `version`, and the
+    relevancy rows on the clean crops."""
+    from ptovs.field.relevancy import CANONICAL
+
     enc = encoder(version, col["world"])
     text = enc.encode_texts(col["phrases"])
-    out = {}
+    canon = enc.encode_texts(list(CANONICAL))
+    out, rel = {}, []
     for row, items in col["rows"].items():
         crops = np.stack([c for _, c in items]).astype(np.float32) / np.float32(255.0)
-        pred = np.argmax(enc.encode_images(crops) @ text.T, axis=1)
+        emb = enc.encode_images(crops).astype(np.float64)
+        pred = np.argmax(emb @ text.T, axis=1)
         out[row] = [
             [*meta[:3], int(p), *meta[3:]]
             for (meta, _), p in zip(items, pred, strict=True)
         ]
-    return {"seed": col["seed"], "phrases": col["phrases"], "rows": out}
+        if row == "clean":
+            truth = np.array([meta[2] for meta, _ in items])
+            rel = relevancies(emb @ text.T, emb @ canon.T, truth).tolist()
+    return {"seed": col["seed"], "phrases": col["phrases"], "rows": out,
+            "relevancy": rel}  # fmt: skip
 
 
 def summarise(results: list[dict]) -> dict:
@@ -313,6 +336,10 @@ def summarise(results: list[dict]) -> dict:
     p_b = wb_.mean() if len(wb_) else float("nan")
     p_b_given_a = wb_[wa_].mean() if wa_.any() else float("nan")
     out["error_lift"] = float(p_b_given_a / p_b) if p_b > 0 else float("nan")
+    rel = np.array([r for res in results for r in res.get("relevancy", [])])
+    if len(rel):
+        out["relevancy_own"] = float(np.median(rel[:, 0]))
+        out["relevancy_other"] = float(np.nanmedian(rel[:, 1]))
     return out
 
 
@@ -326,7 +353,7 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", nargs="+", default=["300-303"])
     ap.add_argument("--cams", type=int, default=16, help="train cameras a seed")
-    ap.add_argument("--version", type=int, default=2, choices=(1, 2))
+    ap.add_argument("--version", type=int, default=2, choices=(1, 2, 3))
     ap.add_argument("--scale", type=int, default=3, help="photo side x the preset's")
     ap.add_argument(
         "--out", type=Path, default=ROOT / "work" / "standin" / "profile.json"
@@ -349,7 +376,9 @@ def main(argv: list[str] | None = None) -> None:
     with atomic_file(args.out) as tmp:
         Path(tmp).write_text(json.dumps({"summary": summary, "seeds": results}))
     print(f"clean accuracy {summary['clean_accuracy']:.3f}  shape bias "
-          f"{summary['shape_bias']:.2f}  error lift {summary['error_lift']:.2f}")  # fmt: skip
+          f"{summary['shape_bias']:.2f}  error lift {summary['error_lift']:.2f}  "
+          f"relevancy own {summary.get('relevancy_own', float('nan')):.3f} "
+          f"other {summary.get('relevancy_other', float('nan')):.3f}")  # fmt: skip
     for name, r in summary["rows"].items():
         print(f"  {name:22s} n={r['n']:4d}  acc {r['accuracy']:.3f}  "
               f"{100 * r['relative']:+.0f} %")  # fmt: skip

@@ -199,3 +199,74 @@ def test_a_scene_written_for_version_2(tmp_path, monkeypatch) -> None:
     assert not isinstance(get_encoder("synthetic"), v2.SyntheticEncoderV2)
     with pytest.raises(ValueError, match="stand-in version"):
         standin_version({"version": 7})
+
+
+def test_version_3_building_is_the_average_word(world_crops, enc) -> None:
+    """Version 3 (amendment 4): "building" embeds so that its cosine with any
+    content is the mean of the part phrases' cosines (plus a fixed orthogonal
+    part's chance cosine); everything else is version 2's, bit for bit."""
+    world, vocab, crops, _ = world_crops
+    e3 = v2.SyntheticEncoderV3({**vocab, "version": 3})
+    parts = sorted(e3._parts)
+    C = np.stack([v2.SyntheticEncoderV2._text_content(e3, p) for p in parts])
+    m = C.mean(axis=0)
+    b = e3._text_content("Building")
+    assert np.linalg.norm(b) == pytest.approx(1.0, abs=1e-9)
+    assert b @ m == pytest.approx(m @ m, abs=1e-9)  # the orthogonal part adds nothing
+    cc = v2.content(np.stack(crops[:12]))
+    gap = cc @ b - (cc @ C.T).mean(axis=1)  # n's chance cosine, sd about 0.04
+    assert np.abs(gap).max() < 0.2, gap
+    assert np.array_equal(e3._text_content("building"), b)  # fixed, not redrawn
+    # the image side and every other phrase are version 2's
+    x = np.stack(crops[:3])
+    assert np.array_equal(e3.encode_images(x), enc.encode_images(x))
+    same = ["object", "things", "scene", "sky", "background", parts[0]]
+    assert np.array_equal(e3.encode_texts(same), enc.encode_texts(same))
+    assert not np.allclose(
+        e3.encode_texts(["building"]), enc.encode_texts(["building"])
+    )
+    # without the scene's parts there is nothing to average: version 2's phrase
+    bare = v2.SyntheticEncoderV3({"version": 3})
+    assert np.array_equal(bare.encode_texts(["building"]),
+                          v2.SyntheticEncoderV2({"version": 2}).encode_texts(["building"]))  # fmt: skip
+
+
+def test_version_3_is_dispatched_and_keyed(world_crops, tmp_path) -> None:
+    import json
+    from types import SimpleNamespace
+
+    from ptovs.encoders import standin_version, synthetic_encoder
+    from ptovs.stages.extract_features import Config, standin_key
+
+    world = world_crops[0]
+    vocab = scene_vocabulary(world, PRESETS[PRESET], [], 3)
+    assert standin_version(vocab) == 3 and vocab["parts"] and "world" in vocab
+    assert isinstance(synthetic_encoder(vocab), v2.SyntheticEncoderV3)
+    (tmp_path / "synthetic").mkdir()
+    (tmp_path / "synthetic" / "vocabulary.json").write_text(json.dumps(vocab))
+    ref = SimpleNamespace(load=lambda: SimpleNamespace(root=tmp_path))
+    assert standin_key(Config(), ref) == {"standin": "3"}
+    with pytest.raises(ValueError, match="1, 2 or 3"):
+        scene_vocabulary(world, PRESETS[PRESET], [], 4)
+
+
+def test_screen_asks_only_to_beat_an_average_word() -> None:
+    from ptovs.synthetic.screen import MARGIN, NEGATIVES, margins, passes
+
+    own = np.array([0.30, 0.30, 0.30])
+    neg = np.zeros((3, len(NEGATIVES)))
+    neg[:, NEGATIVES.index("building")] = [0.28, 0.25, 0.32]
+    neg[:, NEGATIVES.index("sky")] = 0.05
+    plain = margins(own, neg)  # every negative by MARGIN (versions 1 and 2)
+    assert np.allclose(plain, [0.02, 0.05, -0.02]) and not passes(plain)
+    avg = margins(own, neg, ("building",))  # version 3: beat the average word
+    building = np.array([0.28, 0.25, 0.32])
+    assert np.allclose(avg, own - np.maximum(0.05, building - MARGIN))
+    assert passes(avg)
+    # a crop that loses to the average word by more than MARGIN still fails there
+    neg[:, NEGATIVES.index("building")] = 0.30 + 1.5 * MARGIN
+    assert (margins(own, neg, ("building",)) < 0).all()
+    # any other negative keeps the full margin
+    neg[:, NEGATIVES.index("building")] = 0.0
+    neg[:, NEGATIVES.index("sky")] = 0.25
+    assert np.allclose(margins(own, neg, ("building",)), 0.05)

@@ -285,11 +285,12 @@ def main(
 )
 @click.option(
     "--standin",
-    type=click.Choice(["1", "2"]),
+    type=click.Choice(["1", "2", "3"]),
     default="1",
     show_default=True,
-    help="The stand-in for CLIP the scene is written for: 1 (the original) or 2 "
-    "(calibrated against CLIP's published failure profile; docs/standin.md).",
+    help="The stand-in for CLIP the scene is written for: 1 (the original), 2 "
+    "(calibrated against CLIP's published failure profile) or 3 (2 with "
+    "'building' as the average of the part phrases); docs/standin.md.",
 )
 def synth_scene(
     out: Path,

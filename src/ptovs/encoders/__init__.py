@@ -21,6 +21,7 @@ from ptovs.crop import prepare_crop  # the encoders' input, defined below them
 logger = logging.getLogger(__name__)
 
 ENCODERS = ("synthetic", "openclip")
+STANDIN_VERSIONS = (1, 2, 3)
 
 
 @runtime_checkable
@@ -40,10 +41,12 @@ class Encoder(Protocol):
 
 
 def standin_version(vocabulary: dict | None) -> int:
-    """Which stand-in a synthetic scene's vocabulary was written for (1 or 2)."""
+    """Which stand-in a synthetic scene's vocabulary was written for (1, 2 or 3)."""
     v = (vocabulary or {}).get("version", 1)
-    if v not in (1, 2):
-        raise ValueError(f"unknown stand-in version {v!r} in the vocabulary (1 or 2)")
+    if v not in STANDIN_VERSIONS:
+        raise ValueError(
+            f"unknown stand-in version {v!r} in the vocabulary (1, 2 or 3)"
+        )
     return int(v)
 
 
@@ -52,8 +55,8 @@ def synthetic_encoder(vocabulary=None) -> Encoder:
 
     Args:
         vocabulary: path to vocabulary.json, its dict, or None (version 1, generic
-            phrases only). Version 1 is `encoders.synthetic`; version 2 (issue 41)
-            `encoders.synthetic_v2`.
+            phrases only). Version 1 is `encoders.synthetic`; versions 2 and 3
+            (issue 41) `encoders.synthetic_v2`.
     """
     import json
     from pathlib import Path
@@ -66,10 +69,13 @@ def synthetic_encoder(vocabulary=None) -> Encoder:
         if not path.is_file():
             raise FileNotFoundError(f"vocabulary {path} not found")
         vocab = json.loads(path.read_text())
-    if standin_version(vocab) == 2:
-        from ptovs.encoders.synthetic_v2 import SyntheticEncoderV2
+    version = standin_version(vocab)
+    if version in (2, 3):
+        from ptovs.encoders import synthetic_v2
 
-        return SyntheticEncoderV2(vocab)
+        if version == 3:
+            return synthetic_v2.SyntheticEncoderV3(vocab)
+        return synthetic_v2.SyntheticEncoderV2(vocab)
     return SyntheticEncoder(vocab)
 
 

@@ -42,6 +42,14 @@ appearances, and in several instances of its category (its own texture and
 variants with other colours, frequencies and offsets of the same pattern).
 Generic phrases, "sky", styles and unknown phrases behave as in version 1.
 
+Version 3 (`SyntheticEncoderV3`, docs/benchmarks.md "Amendment 4") is version 2
+with one change of the text side: "building", one of the pipeline's canonical
+phrases, is the *average word* of the scene's part phrases (LERF chose its canonical
+phrases as "average" words for the queries users make, so that a relevancy of 0.5
+means "as relevant as an average word"). Version 2 kept version 1's square swatches
+for the canonical phrases, which lie far from every masked part crop, so every
+part's phrase won the relevancy on every part.
+
 Deterministic on one machine: float64 numpy and per-crop OpenCV filters and
 resizes (bit for bit across batch sizes and runs).
 """
@@ -528,3 +536,35 @@ def _swatch_content(key: str) -> np.ndarray:
     out = content(render_swatch(json.loads(key))[None])[0]
     out.flags.writeable = False
     return out
+
+
+AVERAGE_WORDS = ("building",)
+"""Version 3's canonical phrases that embed as the average of the part phrases."""
+
+
+class SyntheticEncoderV3(SyntheticEncoderV2):
+    """Stand-in for CLIP, version 3: version 2 whose "building" is the average word
+    of the scene's part phrases (module docstring; issue 41, amendment 4)."""
+
+    name = "synthetic-v3"
+    average_words = AVERAGE_WORDS
+
+    def _text_content(self, phrase: str) -> np.ndarray:
+        key = phrase.strip().lower()
+        if key in AVERAGE_WORDS and self._world is not None and self._parts:
+            return self._average_word(key)
+        return super()._text_content(phrase)
+
+    def _average_word(self, key: str) -> np.ndarray:
+        """m + sqrt(1 - |m|^2) n: m the mean content of the part phrases, n a fixed
+        seeded unit vector orthogonal to m. Its cosine with any content c is
+        c.m (the mean of the part phrases' cosines with c) plus n's chance
+        cosine with c, about N(0, (1 - |m|^2) / 512)."""
+        parts = sorted(self._parts)
+        m = np.mean([SyntheticEncoderV2._text_content(self, p) for p in parts], axis=0)
+        n = np.random.default_rng([SEED + 7, *key.encode()]).standard_normal(DIM)
+        mm = float(m @ m)
+        if mm > 0:
+            n = n - (n @ m) / mm * m
+        n = n / np.sqrt(n @ n)
+        return m + np.sqrt(max(0.0, 1.0 - mm)) * n

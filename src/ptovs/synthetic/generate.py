@@ -445,8 +445,9 @@ def scene_vocabulary(
 ) -> dict:
     """The stand-in encoder's vocabulary: phrase -> canonical swatch description.
 
-    `standin` 2 (issue 41) adds what version 2 of the stand-in renders its text
-    side from: the world ("world") and each part phrase's part ids ("parts")."""
+    `standin` 2 and 3 (issue 41) add what versions 2 and 3 of the stand-in render
+    their text side from: the world ("world") and each part phrase's part ids
+    ("parts")."""
     from ptovs.encoders.synthetic import generic_vocabulary
 
     phrases: dict[str, dict] = {}
@@ -481,7 +482,7 @@ def scene_vocabulary(
         "phrases": phrases,
         "generic": generic_vocabulary(sky=phrases["sky"], ground=ground),
     }
-    if standin == 2:
+    if standin in (2, 3):
         parts: dict[str, list[int]] = {}
         for part in world.parts:
             parts.setdefault(part.query, []).append(part.id)
@@ -489,9 +490,9 @@ def scene_vocabulary(
             name = part.name.title()
             if name in phrases and name not in {q.query for q in world.parts}:
                 parts.setdefault(name, []).append(part.id)
-        out.update(version=2, world=world.to_dict(), parts=parts)
+        out.update(version=standin, world=world.to_dict(), parts=parts)
     elif standin != 1:
-        raise ValueError(f"standin must be 1 or 2, got {standin!r}")
+        raise ValueError(f"standin must be 1, 2 or 3, got {standin!r}")
     return out
 
 

@@ -16,7 +16,10 @@ stand-in encoder and take its margin
 
     m = cos(crop, q) − max_j cos(crop, n_j)   over the negatives n_j,
 
-so that the relevancy min_j sigmoid(τ(cos q − cos n_j)) = sigmoid(τ m). The
+so that the relevancy min_j sigmoid(τ(cos q − cos n_j)) = sigmoid(τ m). An
+*average word* of the stand-in (version 3's "building": the mean of the part
+phrases, so close to every part by definition) is only to be beaten, relevancy
+above 0.5: against it the margin counts MARGIN more. The
 part passes when its median crop has m ≥ MARGIN (= 1/τ: relevancy ≥ sigmoid(1)
 = 0.73, odds e : 1) and at least MIN_WIN of its crops have m > 0 (the phrase
 wins there at all). A part that fails gets a new texture, drawn from its own
@@ -121,6 +124,7 @@ def crop_margins(
     enc = synthetic_encoder(vocabulary)  # the vocabulary's stand-in version
     by_id = {p.id: p for p in world.parts}
     text = enc.encode_texts([by_id[k].query for k in part_ids]).astype(np.float64)
+    average = tuple(getattr(enc, "average_words", ()))
     negs = enc.encode_texts(list(NEGATIVES)).astype(np.float64)
     crops: list[np.ndarray] = []
     owner: list[int] = []
@@ -140,12 +144,23 @@ def crop_margins(
     if not crops:
         return out
     emb = enc.encode_images(np.stack(crops)).astype(np.float64)
-    neg_best = (emb @ negs.T).max(1)
+    neg = emb @ negs.T
     owner_a = np.asarray(owner)
     for j, k in enumerate(part_ids):
         sel = owner_a == k
-        out[k] = emb[sel] @ text[j] - neg_best[sel]
+        out[k] = margins(emb[sel] @ text[j], neg[sel], average)
     return out
+
+
+def margins(
+    own: np.ndarray, negatives: np.ndarray, average: tuple[str, ...] = ()
+) -> np.ndarray:
+    """Crop margins from the cosines with the query phrase [n] and with each of
+    NEGATIVES [n, len(NEGATIVES)]: own minus the strongest negative, where an
+    average word (in `average`) is only to be beaten, so its cosine counts
+    MARGIN less."""
+    lift = np.array([MARGIN if n in average else 0.0 for n in NEGATIVES])
+    return np.asarray(own, np.float64) - (np.asarray(negatives) - lift).max(1)
 
 
 def screen_world(
@@ -250,6 +265,7 @@ __all__ = [
     "REDRAWS",
     "PartScreen",
     "crop_margins",
+    "margins",
     "passes",
     "redraw_texture",
     "screen_record",
