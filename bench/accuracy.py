@@ -1079,7 +1079,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--data", type=Path, default=ROOT / "data" / "accuracy")
     ap.add_argument("--standin", type=int, default=1, choices=(1, 2, 3),
                     help="the stand-in for CLIP the scenes are made for (issue 41: "
-                         "2 with its own --data and --work)")  # fmt: skip
+                         "2 or 3, each with its own --data and --work)")  # fmt: skip
     ap.add_argument("--work", type=Path, default=ROOT / "work" / "accuracy")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--threads", type=int, default=1, help=argparse.SUPPRESS)
