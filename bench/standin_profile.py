@@ -72,7 +72,6 @@ from ptovs.synthetic.generate import (  # noqa: E402
 from ptovs.synthetic.world import Camera, neutral_appearance  # noqa: E402
 from ptovs.synthetic.world.appearance import sample_appearance  # noqa: E402
 
-TEMPERATURE = 10.0  # the pipeline's relevancy temperature (query's default)
 MIN_FRAC = 0.004  # a part needs 0.4 % of the image (and 64 px) to be cut
 CROP_ROWS = {  # crop-level degradations: name -> function of a [224, 224, 3] crop
     "blur-3": lambda c, r: _remask(c, cv2.GaussianBlur(c, (0, 0), 3.0)),
@@ -271,7 +270,14 @@ def relevancies(cos: np.ndarray, canon: np.ndarray, truth: np.ndarray) -> np.nda
     """[n, 2]: each crop's relevancy of its own phrase and the median relevancy of
     the other phrases, from its cosines with the phrases [n, K] and with the
     canonical phrases [n, C] (the pipeline's rule: `ptovs.field.relevancy`)."""
-    rel = 1.0 / (1.0 + np.exp(-TEMPERATURE * (cos - canon.max(1, keepdims=True))))
+    import torch
+
+    from ptovs.field.relevancy import QuerySettings, relevancy
+
+    rel = relevancy(
+        torch.from_numpy(cos), torch.from_numpy(canon)[:, None, :],
+        QuerySettings().temperature,
+    ).numpy()  # fmt: skip
     own = rel[np.arange(len(rel)), truth]
     others = np.ma.masked_array(rel, np.eye(rel.shape[1], dtype=bool)[truth])
     return np.stack([own, np.ma.median(others, axis=1).filled(np.nan)], 1)
