@@ -8,6 +8,7 @@
 #   make bench-multiapp  the paper's multi-appearance claim in stand-in 2's world (fresh seeds)
 #   make bench-multiapp-3x  the same at stand-in 2's calibration photo size (3x small)
 #   make bench-multiapp-v3  the same size in stand-in 3's world (fresh seeds)
+#   make bench-multiapp-truth  stand-in 3, truth segments, small (amendment 5)
 #   make bench-growth  each stage's time, memory and quality at 100-763 photos (landmark)
 #   make bench-peers OPENSPLAT_SRC=DIR  reconstruct beside OpenSplat --cpu (a clone you give)
 #   make -j3 all       every scene under DATA in parallel, stages in order, then the
@@ -61,7 +62,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # Gaussians, 2.5 %, at relevancy score 0.477 on 2026-11-26's machine)
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo view test system-deps test-slurm lint format bench bench-accuracy bench-upstream bench-standin bench-multiapp bench-multiapp-3x bench-multiapp-v3 bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
+.PHONY: setup demo view test system-deps test-slurm lint format bench bench-accuracy bench-upstream bench-standin bench-multiapp bench-multiapp-3x bench-multiapp-v3 bench-multiapp-truth bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
 
 setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml
@@ -210,6 +211,16 @@ MULTIAPPV3_LABELS ?= 2d 2d-best 2d-truth
 bench-multiapp-v3: setup
 	$(BIN)/python bench/accuracy.py --preset small-3x --standin 3 --seeds 140-157 --dev 140-148 \
 	  --data $(QDATA)/accuracy-v3 --work $(QWORK)/accuracy-v3 --labels $(MULTIAPPV3_LABELS)
+
+# issue 41, amendment 5: the method on truth segments in stand-in 3's world at small's
+# size, fresh seeds dev 160-168, test 169-177; differences paired against male-truth.
+# The front end first (MULTIAPPTRUTH_LABELS=2d-truth 2d on the dev seeds), then pass 1
+# (the default), then Table 4 (add same-appearance-truth select-random-truth)
+MULTIAPPTRUTH_LABELS ?= 2d-truth 2d male-truth no-multi-appearance-truth langsplat-truth
+bench-multiapp-truth: setup
+	$(BIN)/python bench/accuracy.py --preset small --standin 3 --seeds 160-177 --dev 160-168 \
+	  --data $(QDATA)/accuracy-v3-1x --work $(QWORK)/accuracy-v3-1x \
+	  --labels $(MULTIAPPTRUTH_LABELS) --base male-truth
 
 # how each stage's time, peak RSS and output quality grow with the collection (issue
 # 43 item 2): the landmark world at 100, 200, 400 and 763 photos, one size at a time,

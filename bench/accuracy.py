@@ -52,6 +52,10 @@ at a time on two cores, one thread each), the instrument measures, on every
   male-old            the full method with those defaults
   male-truth, langsplat-truth, no-multi-appearance-truth   Table 3 rows with the
                       truth part masks as segments (the paper's SAM setting's bound)
+  same-appearance-truth, select-random-truth   Table 4 on truth segments: male-truth
+                      with the view's own features in every novel slot, or with
+                      targets drawn without ε_q and ε_d (compare with --base
+                      male-truth)
 
 A finished seed's pairs go to <work>/results/<scene>.json (atomically), each label
 with the artifact key of what it measured (the evaluate artifact's; for 2d/2d-ae the
@@ -142,6 +146,12 @@ CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
         for v in ("male", "langsplat", "no-multi-appearance")
     },
 }
+# Table 4 on truth segments (issue 41, amendment 5): `male-truth` with one change
+# of render-appearances, so that the paired difference is the selection's alone
+CHAIN_LABELS.update({
+    f"{k}-truth": ("male", {**CHAIN_LABELS[k][1], "extract-features": ["segmenter=truth"]})
+    for k in ("same-appearance", "select-random")
+})  # fmt: skip
 # measured only when asked for (--labels), kept out of the default run so that
 # `make bench-accuracy` stays within its time: candidates for issue 22's fixes, and
 # the one-off comparisons of issue 40 (the old front end; Table 3 rows under truth
@@ -152,6 +162,8 @@ UPSTREAM_LABELS = (
     "male-truth",
     "langsplat-truth",
     "no-multi-appearance-truth",
+    "same-appearance-truth",
+    "select-random-truth",
 )
 # issue 41's target selection (Table 4 and the normalised ε_q): `make bench-targets`
 TARGET_LABELS = (
@@ -674,13 +686,14 @@ def _records(results: dict[int, dict], label: str, hard: bool | None = None) -> 
     return recs
 
 
-def summarise(results: dict[int, dict], labels: list[str]) -> dict:
+def summarise(results: dict[int, dict], labels: list[str], base: str = "male") -> dict:
     """Per label: cluster-mean mIoU / mPA / mP with CIs, the paired difference to
-    the full method, easy and hard views apart, and the language-stage time."""
+    `base` (the full method, or `male-truth` on truth segments), easy and hard views
+    apart, and the language-stage time."""
     from ptovs.stats import bootstrap_mean, cluster_means, paired_difference
 
     out: dict = {}
-    full = cluster_means(_records(results, "male"))
+    full = cluster_means(_records(results, base))
     for label in labels:
         recs = _records(results, label)
         if not recs:
@@ -691,7 +704,7 @@ def summarise(results: dict[int, dict], labels: list[str]) -> dict:
             row[name] = bootstrap_mean(np.array(list(cm.values())))
         cm = cluster_means(recs)
         row["clusters"] = len(cm)
-        if label != "male" and full:
+        if label != base and full:
             row["diff"] = paired_difference(cm, full)
         for hard in (False, True):
             sub = cluster_means(_records(results, label, hard))
@@ -763,10 +776,10 @@ def report(args: argparse.Namespace) -> str:
         if not seeds:
             continue
         sub = {s: results[s] for s in seeds}
-        summ = summarise(sub, labels)
+        summ = summarise(sub, labels, args.base)
         summaries[half] = summ
         md += ["", f"### {half} seeds {seeds}", ""]
-        md += _main_table(summ)
+        md += _main_table(summ, args.base)
         bad, total, which = unanswered(sub, labels)
         md += [
             "",
@@ -775,7 +788,7 @@ def report(args: argparse.Namespace) -> str:
             + (f": {', '.join(f'{s}/{q}' for s, q in which)}" if which else "."),
         ]
         md += _ceiling_lines(summ)
-        md += _resolution_lines(sub)
+        md += _resolution_lines(sub, args.base, _baseline(args.base))
     md += _render_lines(results, labels)
     md += ["", "### Where mIoU is lost (all seeds)", ""]
     md += chain_loss(results)
@@ -835,11 +848,18 @@ def _rel(path: Path | None) -> str:
         return str(path)
 
 
-def _resolution_lines(results: dict[int, dict], other: str = "langsplat") -> list[str]:
-    """How wide the male − baseline interval is, and how many clusters ±0.03 needs."""
+def _baseline(base: str) -> str:
+    """LangSplat's label on the same segments as `base`."""
+    return "langsplat-truth" if base.endswith("-truth") else "langsplat"
+
+
+def _resolution_lines(
+    results: dict[int, dict], base: str = "male", other: str = "langsplat"
+) -> list[str]:
+    """How wide the base − baseline interval is, and how many clusters ±0.03 needs."""
     from ptovs.stats import cluster_means, paired_difference
 
-    a = cluster_means(_records(results, "male"))
+    a = cluster_means(_records(results, base))
     b = cluster_means(_records(results, other))
     common = [c for c in a if c in b]
     if len(common) < 2:
@@ -851,7 +871,7 @@ def _resolution_lines(results: dict[int, dict], other: str = "langsplat") -> lis
     per_seed = len(common) / len(results)
     return [
         "",
-        f"Resolution: male − {other} = {est.fmt(True)}, half-width "
+        f"Resolution: {base} − {other} = {est.fmt(True)}, half-width "
         f"**{est.half_width:.3f}** over {len(common)} clusters (SD of the per-cluster "
         f"difference {sd:.3f}); a half-width of 0.03 needs about {need} clusters, "
         f"i.e. {need / per_seed:.0f} seeds in this half at {per_seed:.1f} queries "
@@ -888,11 +908,11 @@ def _screen_lines(results: dict[int, dict]) -> list[str]:
     ]
 
 
-def _main_table(summ: dict) -> list[str]:
+def _main_table(summ: dict, base: str = "male") -> list[str]:
     from ptovs.variants import TABLE3_ROWS
 
     lines = [
-        "| variant | Table 3 row | mIoU [95 % CI] | mPA | mP | Δ mIoU vs male "
+        f"| variant | Table 3 row | mIoU [95 % CI] | mPA | mP | Δ mIoU vs {base} "
         "[95 % CI] | CI excludes 0 | easy / hard views | language stages (s) | "
         "clusters |",
         "|---|---|---|---|---|---|---|---|---|---|",
@@ -1085,6 +1105,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--threads", type=int, default=1, help=argparse.SUPPRESS)
     ap.add_argument("--one-seed", type=int, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--report-only", action="store_true")
+    ap.add_argument("--base", default="male", choices=ALL_LABELS,
+                    help="the label every difference is paired against (male-truth "
+                         "for the rows on truth segments)")  # fmt: skip
     ap.add_argument("--compare", type=Path, default=None,
                     help="another run's --work: compare the variants' ranking")  # fmt: skip
     ap.add_argument("--plot", type=Path, default=None,

@@ -128,6 +128,31 @@ def test_report_statistics_on_known_results() -> None:
     assert "is at least every variant's mean" in "\n".join(acc._ceiling_lines(summ))
 
 
+def test_differences_against_another_base() -> None:
+    """Amendment 5: rows on truth segments pair against `male-truth`, not `male`;
+    Table 4's truth labels are `male-truth` with one render-appearances change."""
+    acc = _bench()
+    results = {
+        0: _fake(0, {"male-truth": {"A": [0.6, 0.6], "B": [0.2, 0.2]},
+                     "same-appearance-truth": {"A": [0.5, 0.5], "B": [0.2, 0.2]}}),
+    }  # fmt: skip
+    summ = acc.summarise(results, ["male-truth", "same-appearance-truth"], "male-truth")
+    assert "diff" not in summ["male-truth"]
+    assert summ["same-appearance-truth"]["diff"].mean == pytest.approx(-0.05)
+    assert "| Δ mIoU vs male-truth " in acc._main_table(summ, "male-truth")[0]
+    alone = acc.summarise(results, ["same-appearance-truth"])  # no base: no pairing
+    assert "diff" not in alone["same-appearance-truth"]
+    for lab, change in (("same-appearance-truth", "targets=same"),
+                        ("select-random-truth", "selection=random")):  # fmt: skip
+        variant, sets = acc.CHAIN_LABELS[lab]
+        assert variant == acc.CHAIN_LABELS["male-truth"][0] == "male"
+        assert sets == {**acc.CHAIN_LABELS["male-truth"][1],
+                        "render-appearances": [change]}  # fmt: skip
+        assert lab in acc.ALL_LABELS and lab not in acc.LABELS
+    assert acc._baseline("male-truth") == "langsplat-truth"
+    assert acc._baseline("male") == "langsplat"
+
+
 def test_best_union_is_the_best_subset() -> None:
     """2d-best's union against every subset of segments (small maps)."""
     import itertools
