@@ -1,7 +1,7 @@
 """Where the field loses on truth segments: the 3-d code (issue 41, amendment 5).
 
     python bench/ae_probe.py --data data/accuracy-v3-1x --work work/accuracy-v3-1x \\
-        --preset small --standin 3 --seeds 160 161          # after the truth chains
+        --preset small --standin 3 --seeds 160-168          # after the truth chains
     python bench/ae_probe.py --data DIR --work DIR --preset small --standin 1 \\
         --seeds 0 --no-ae                                   # another world, PCA only
 
@@ -24,6 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import accuracy as A  # noqa: E402  (same folder)
+from common import probe_parser, seed_list  # noqa: E402
 
 KS = (3, 8, 16, 32, 64)
 
@@ -105,16 +106,11 @@ def probe(args: argparse.Namespace, seed: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data", type=Path, required=True)
-    ap.add_argument("--work", type=Path, required=True)
-    ap.add_argument("--preset", default="small")
-    ap.add_argument("--standin", type=int, default=3, choices=(1, 2, 3))
-    ap.add_argument("--seeds", type=int, nargs="+", required=True)
+    ap = probe_parser(__doc__, "small")
     ap.add_argument("--no-ae", action="store_true",
                     help="PCA only (no chain to train the AE on)")  # fmt: skip
     args = ap.parse_args(argv)
-    for seed in args.seeds:
+    for seed in seed_list(args.seeds):
         print(seed, probe(args, seed), flush=True)
 
 

@@ -7,6 +7,7 @@ fresh process, and the results file every script keeps.
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
@@ -101,6 +102,18 @@ def seed_list(items: list[str]) -> list[int]:
         a, _, b = it.partition("-")
         out += list(range(int(a), int(b) + 1)) if b else [int(a)]
     return list(dict.fromkeys(out))
+
+
+def probe_parser(doc: str, preset: str) -> argparse.ArgumentParser:
+    """The arguments of the dev diagnostics that read the instrument's scenes and
+    artifacts (bench/level_probe.py, bench/ae_probe.py); `--seeds` takes ranges."""
+    ap = argparse.ArgumentParser(description=doc.split("\n")[0])
+    ap.add_argument("--data", type=Path, required=True)
+    ap.add_argument("--work", type=Path, required=True)
+    ap.add_argument("--preset", default=preset)
+    ap.add_argument("--standin", type=int, default=3, choices=(1, 2, 3))
+    ap.add_argument("--seeds", nargs="+", required=True, help="seeds or ranges (0-8)")
+    return ap
 
 
 def instrument_chain(scene: Path, work: Path, config: Path, variant: str = "male"):

@@ -11,7 +11,6 @@ over (view, query) pairs of the `2d` rule with the query's own level choice
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -19,6 +18,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import accuracy as A  # noqa: E402  (same folder)
+from common import probe_parser, seed_list  # noqa: E402
 
 
 def probe(data: Path, work: Path, preset: str, standin: int, seed: int) -> dict:
@@ -62,14 +62,9 @@ def probe(data: Path, work: Path, preset: str, standin: int, seed: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data", type=Path, required=True)
-    ap.add_argument("--work", type=Path, required=True)
-    ap.add_argument("--preset", default="small-3x")
-    ap.add_argument("--standin", type=int, default=3, choices=(1, 2, 3))
-    ap.add_argument("--seeds", type=int, nargs="+", required=True)
+    ap = probe_parser(__doc__, "small-3x")
     args = ap.parse_args(argv)
-    for seed in args.seeds:
+    for seed in seed_list(args.seeds):
         res = probe(args.data, args.work, args.preset, args.standin, seed)
         for name, row in res.items():
             print(seed, name, row, flush=True)
