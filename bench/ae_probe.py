@@ -75,12 +75,10 @@ def probe(args: argparse.Namespace, seed: int) -> dict:
         readers["ae"] = load_autoencoder(art).eval()
         art.close()
     sc = ref.load()
-    rows = [
-        SegmentFeatures.from_view(fe[v.name], "orig").level_table(lv)
-        for v in sc.views
-        if v.name in fe
-        for lv in range(SegmentFeatures.from_view(fe[v.name], "orig").levels)
+    views = [
+        SegmentFeatures.from_view(fe[v.name], "orig") for v in sc.views if v.name in fe
     ]
+    rows = [sf.level_table(lv) for sf in views for lv in range(sf.levels)]
     x = np.concatenate(rows).astype(np.float64)
     pcas = {k: PCA(x, k) for k in KS if k < min(x.shape)}
     readers.update({f"pca-{k}": p for k, p in pcas.items()})
