@@ -40,6 +40,14 @@ two daylight renders of the same crop are (error lift: P(wrong in B | wrong in A
 (amendment 4): the pipeline's relevancy (min over its canonical phrases of
 sigmoid(tau (cos q - cos c)), tau = 10) of the crop's own phrase and, per crop, the
 median over the scene's other part phrases; each row is the median over crops.
+
+The scene code (amendment 6): the chain's 512 -> 3 -> 512 autoencoder
+(`ptovs.stages.train_ae`, its defaults, no uncertainty weights), trained per seed
+on the crops the scene's ordinary photos give (`CODE_FIT`: whole parts under
+neutral, daylight, night and film light, and the pipeline's pieces), and the
+clean and daylight crops (`CODE_EVAL`) read through it: closed-set accuracy
+relative to the same crops read raw, and the two relevancy rows through the code.
+`--code-only` measures just these crops (no degradations, occluders or conflicts).
 """
 
 from __future__ import annotations
@@ -91,6 +99,9 @@ APPEARANCE_ROWS = ("daylight", "night", "bw", "sepia")
 PIECE_BINS = ((0.0, 0.1), (0.1, 0.4), (0.4, 0.7), (0.7, 1.01))
 OCCLUSION_BINS = ((0.1, 0.3), (0.3, 0.6))
 VIEW_BINS = ((0.0, 30.0), (30.0, 60.0), (60.0, 180.0))
+# the scene code's training crops (and every piece row), and the crops read through it
+CODE_FIT = ("clean", "daylight", "daylight-b", "night", "bw", "sepia")
+CODE_EVAL = ("clean", "daylight", "daylight-b")
 
 
 def _remask(clean: np.ndarray, out: np.ndarray) -> np.ndarray:
@@ -184,10 +195,16 @@ def encoder(version: int, world, preset: str = "small"):
 
 
 def collect(
-    seed: int, n_cams: int, scale: int = 3, version: int = 2, preset: str = "small"
+    seed: int,
+    n_cams: int,
+    scale: int = 3,
+    version: int = 2,
+    preset: str = "small",
+    code_only: bool = False,
 ) -> dict:
     """Every row's crops (uint8) and truth labels for one calibration seed, in
-    the world the generator makes for stand-in `version` (its screen's textures)."""
+    the world the generator makes for stand-in `version` (its screen's textures);
+    with `code_only`, the scene code's rows alone (`CODE_FIT`, pieces)."""
     plan = plan_scene(preset, seed, version)
     world = plan.world
     phrases = sorted({p.query for p in world.parts})
@@ -215,7 +232,7 @@ def collect(
             row = _piece_row("piece", share)
             if row and k in known:
                 add(row, ci, k, prepare_crop(clean.image, m))
-        if scale != 1:  # the same parts at the instrument's own photo size
+        if scale != 1 and not code_only:  # the parts at the instrument's photo size
             rec1 = {"image_id": ci, **plan.cams[ci].to_dict()}
             small, _ = rerender(world, rec1, "neutral", "none", seed=seed)
             for k, _m in parts:
@@ -225,10 +242,19 @@ def collect(
                 row = _piece_row("native-piece", share)
                 if row and k in known:
                     add(row, ci, k, prepare_crop(small.image, m))
+        for k, c in crops.items():
+            add("clean", ci, k, c)
+        arng = np.random.default_rng([seed, 43, ci])
+        for row in APPEARANCE_ROWS + ("daylight-b",):
+            app = _appearance(row.removesuffix("-b"), arng)
+            v, _ = rerender(world, rec, app, "none", seed=seed)
+            for k, m in parts:  # same masks: the geometry does not change
+                add(row, ci, k, prepare_crop(v.image, m))
+        if code_only:
+            continue
         az = _azimuth(world, cam)
         crng = np.random.default_rng([seed, 42, ci])
         for k, c in crops.items():
-            add("clean", ci, k, c)
             for lo, hi in VIEW_BINS:
                 if lo <= az < hi:
                     add(f"view-{lo:.0f}-{hi:.0f}", ci, k, c)
@@ -238,12 +264,6 @@ def collect(
             img = fn(clean.image)
             for k, m in parts:
                 add(row, ci, k, prepare_crop(img, m))
-        arng = np.random.default_rng([seed, 43, ci])
-        for row in APPEARANCE_ROWS + ("daylight-b",):
-            app = _appearance(row.removesuffix("-b"), arng)
-            v, _ = rerender(world, rec, app, "none", seed=seed)
-            for k, m in parts:  # same masks: the geometry does not change
-                add(row, ci, k, prepare_crop(v.image, m))
         occ, _ = rerender(world, rec, "neutral", "force", seed=seed)
         for k, m in parts:
             share = float((occ.transient & m).sum() / m.sum())
@@ -283,15 +303,62 @@ def relevancies(cos: np.ndarray, canon: np.ndarray, truth: np.ndarray) -> np.nda
     return np.stack([own, np.ma.median(others, axis=1).filled(np.nan)], 1)
 
 
+def fit_code(x: np.ndarray, seed: int = 0):
+    """The chain's 512 -> 3 -> 512 autoencoder trained on rows x [n, 512] with the
+    stage's defaults (uniform weights: no uncertainty here); returns (model,
+    held-out cosine)."""
+    from ptovs.stages.train_ae import Config, Samples, train_ae
+
+    cfg = Config(seed=seed)
+    order = np.random.default_rng(seed).permutation(len(x))
+    n_held = max(2, int(round(cfg.heldout_fraction * len(x))))
+    s = Samples(
+        rows=x.astype(np.float16), weights=np.ones(len(x), np.float32),
+        train=np.sort(order[n_held:]), heldout=np.sort(order[:n_held]), stats={},
+    )  # fmt: skip
+    model, metrics, _ = train_ae(s, cfg, desc="scene code")
+    return model, float(metrics["heldout_cos"])
+
+
+def through_code(model, x: np.ndarray) -> np.ndarray:
+    """Rows x [n, 512] encoded to the 3-d code and decoded (unit rows)."""
+    import torch
+
+    with torch.no_grad():
+        return model(torch.from_numpy(x.astype(np.float32))).double().numpy()
+
+
+def code_rows(embs: dict, truths: dict, text: np.ndarray, canon: np.ndarray) -> dict:
+    """Amendment 6: the scene's crops through its own 3-d code. Per evaluated crop
+    [truth, pred raw, pred code, own and other relevancy raw, the same through the
+    code], and the code's held-out cosine."""
+    fit = np.concatenate(
+        [e for r, e in embs.items() if r in CODE_FIT or r.startswith("piece-")]
+    )
+    model, cos = fit_code(fit)
+    rows = [r for r in CODE_EVAL if r in embs]
+    if not rows:
+        return {"heldout_cos": cos, "crops": []}
+    raw = np.concatenate([embs[r] for r in rows])
+    truth = np.concatenate([truths[r] for r in rows])
+    out = []
+    for x in (raw, through_code(model, raw)):
+        out.append(np.argmax(x @ text.T, axis=1)[:, None])
+    for x in (raw, through_code(model, raw)):
+        out.append(relevancies(x @ text.T, x @ canon.T, truth))
+    table = np.concatenate([truth[:, None], *out], axis=1)
+    return {"heldout_cos": cos, "n_fit": len(fit), "crops": table.tolist()}
+
+
 def score(col: dict, version: int) -> dict:
-    """Each crop's predicted phrase under the stand-in of `version`, and the
-    relevancy rows on the clean crops."""
+    """Each crop's predicted phrase under the stand-in of `version`, the
+    relevancy rows on the clean crops, and the scene code's rows."""
     from ptovs.field.relevancy import CANONICAL
 
     enc = encoder(version, col["world"])
     text = enc.encode_texts(col["phrases"])
     canon = enc.encode_texts(list(CANONICAL))
-    out, rel = {}, []
+    out, rel, embs, truths = {}, [], {}, {}
     for row, items in col["rows"].items():
         crops = np.stack([c for _, c in items]).astype(np.float32) / np.float32(255.0)
         emb = enc.encode_images(crops).astype(np.float64)
@@ -300,11 +367,36 @@ def score(col: dict, version: int) -> dict:
             [*meta[:3], int(p), *meta[3:]]
             for (meta, _), p in zip(items, pred, strict=True)
         ]
+        embs[row] = emb
+        truths[row] = np.array([meta[2] for meta, _ in items])
         if row == "clean":
-            truth = np.array([meta[2] for meta, _ in items])
-            rel = relevancies(emb @ text.T, emb @ canon.T, truth).tolist()
+            rel = relevancies(emb @ text.T, emb @ canon.T, truths[row]).tolist()
     return {"seed": col["seed"], "phrases": col["phrases"], "rows": out,
-            "relevancy": rel}  # fmt: skip
+            "relevancy": rel, "code": code_rows(embs, truths, text, canon)}  # fmt: skip
+
+
+def summarise_code(results: list[dict]) -> dict:
+    """The scene code's rows over seeds (amendment 6)."""
+    t = np.array([c for res in results for c in res.get("code", {}).get("crops", [])])
+    if not len(t):
+        return {}
+    acc_raw, acc_code = (
+        float(np.mean(t[:, 0] == t[:, 1])),
+        float(np.mean(t[:, 0] == t[:, 2])),
+    )
+    return {
+        "n": len(t),
+        "accuracy_raw": acc_raw,
+        "accuracy_code": acc_code,
+        "relative": acc_code / acc_raw - 1.0 if acc_raw > 0 else float("nan"),
+        "relevancy_own_raw": float(np.median(t[:, 3])),
+        "relevancy_other_raw": float(np.nanmedian(t[:, 4])),
+        "relevancy_own_code": float(np.median(t[:, 5])),
+        "relevancy_other_code": float(np.nanmedian(t[:, 6])),
+        "heldout_cos": [
+            round(r["code"]["heldout_cos"], 4) for r in results if "code" in r
+        ],
+    }
 
 
 def summarise(results: list[dict]) -> dict:
@@ -346,11 +438,16 @@ def summarise(results: list[dict]) -> dict:
     if len(rel):
         out["relevancy_own"] = float(np.median(rel[:, 0]))
         out["relevancy_other"] = float(np.nanmedian(rel[:, 1]))
+    code = summarise_code(results)
+    if code:
+        out["code"] = code
     return out
 
 
-def _one_seed(n_cams: int, scale: int, version: int, t0: float, seed: int) -> dict:
-    out = score(collect(seed, n_cams, scale, version), version)
+def _one_seed(
+    n_cams: int, scale: int, version: int, code_only: bool, t0: float, seed: int
+) -> dict:
+    out = score(collect(seed, n_cams, scale, version, code_only=code_only), version)
     print(f"seed {seed}: {time.perf_counter() - t0:.0f} s", flush=True)
     return out
 
@@ -365,10 +462,14 @@ def main(argv: list[str] | None = None) -> None:
         "--out", type=Path, default=ROOT / "work" / "standin" / "profile.json"
     )
     ap.add_argument("--jobs", type=int, default=1, help="seeds measured at once")
+    ap.add_argument("--code-only", action="store_true",
+                    help="only the scene code's crops (amendment 6)")  # fmt: skip
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     seeds = seed_list(args.seeds)
-    job = functools.partial(_one_seed, args.cams, args.scale, args.version, t0)
+    job = functools.partial(
+        _one_seed, args.cams, args.scale, args.version, args.code_only, t0
+    )
     if args.jobs > 1:
         ctx = multiprocessing.get_context("spawn")
         with ctx.Pool(args.jobs) as pool:
@@ -388,6 +489,12 @@ def main(argv: list[str] | None = None) -> None:
     for name, r in summary["rows"].items():
         print(f"  {name:22s} n={r['n']:4d}  acc {r['accuracy']:.3f}  "
               f"{100 * r['relative']:+.0f} %")  # fmt: skip
+    if "code" in summary:
+        c = summary["code"]
+        print(f"  scene code (3-d)       n={c['n']:4d}  acc {c['accuracy_raw']:.3f} -> "
+              f"{c['accuracy_code']:.3f}  {100 * c['relative']:+.0f} %  relevancy own "
+              f"{c['relevancy_own_raw']:.3f} -> {c['relevancy_own_code']:.3f}, other "
+              f"{c['relevancy_other_raw']:.3f} -> {c['relevancy_other_code']:.3f}")  # fmt: skip
 
 
 if __name__ == "__main__":
