@@ -375,11 +375,34 @@ def score(col: dict, version: int) -> dict:
             "relevancy": rel, "code": code_rows(embs, truths, text, canon)}  # fmt: skip
 
 
+def ratio_interval(
+    t: np.ndarray, cluster: np.ndarray, n_boot: int = 2000, seed: int = 0
+) -> list[float]:
+    """95 % cluster-bootstrap interval of accuracy through the code over accuracy
+    raw, minus 1, from crop rows [truth, pred raw, pred code, ...] and their
+    clusters (seed, part phrase)."""
+    ids, inv = np.unique(cluster, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    raw = np.bincount(inv, t[:, 0] == t[:, 1], len(ids))
+    code = np.bincount(inv, t[:, 0] == t[:, 2], len(ids))
+    rng = np.random.default_rng(seed)
+    pick = rng.integers(0, len(ids), (n_boot, len(ids)))
+    r = code[pick].sum(1) / np.maximum(raw[pick].sum(1), 1e-12) - 1.0
+    return [float(np.percentile(r, 2.5)), float(np.percentile(r, 97.5))]
+
+
 def summarise_code(results: list[dict]) -> dict:
     """The scene code's rows over seeds (amendment 6)."""
     t = np.array([c for res in results for c in res.get("code", {}).get("crops", [])])
     if not len(t):
         return {}
+    cluster = np.array(
+        [
+            (res["seed"], c[0])
+            for res in results
+            for c in res.get("code", {}).get("crops", [])
+        ]
+    )
     acc_raw, acc_code = (
         float(np.mean(t[:, 0] == t[:, 1])),
         float(np.mean(t[:, 0] == t[:, 2])),
@@ -389,6 +412,7 @@ def summarise_code(results: list[dict]) -> dict:
         "accuracy_raw": acc_raw,
         "accuracy_code": acc_code,
         "relative": acc_code / acc_raw - 1.0 if acc_raw > 0 else float("nan"),
+        "relative_ci": ratio_interval(t, cluster),
         "relevancy_own_raw": float(np.median(t[:, 3])),
         "relevancy_other_raw": float(np.nanmedian(t[:, 4])),
         "relevancy_own_code": float(np.median(t[:, 5])),
@@ -492,7 +516,8 @@ def main(argv: list[str] | None = None) -> None:
     if "code" in summary:
         c = summary["code"]
         print(f"  scene code (3-d)       n={c['n']:4d}  acc {c['accuracy_raw']:.3f} -> "
-              f"{c['accuracy_code']:.3f}  {100 * c['relative']:+.0f} %  relevancy own "
+              f"{c['accuracy_code']:.3f}  {100 * c['relative']:+.0f} % "
+              f"[{100 * c['relative_ci'][0]:+.0f}, {100 * c['relative_ci'][1]:+.0f}]  relevancy own "
               f"{c['relevancy_own_raw']:.3f} -> {c['relevancy_own_code']:.3f}, other "
               f"{c['relevancy_other_raw']:.3f} -> {c['relevancy_other_code']:.3f}")  # fmt: skip
 
