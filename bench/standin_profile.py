@@ -341,12 +341,10 @@ def code_rows(embs: dict, truths: dict, text: np.ndarray, canon: np.ndarray) -> 
         return {"heldout_cos": cos, "crops": []}
     raw = np.concatenate([embs[r] for r in rows])
     truth = np.concatenate([truths[r] for r in rows])
-    out = []
-    for x in (raw, through_code(model, raw)):
-        out.append(np.argmax(x @ text.T, axis=1)[:, None])
-    for x in (raw, through_code(model, raw)):
-        out.append(relevancies(x @ text.T, x @ canon.T, truth))
-    table = np.concatenate([truth[:, None], *out], axis=1)
+    reads = (raw, through_code(model, raw))
+    preds = [np.argmax(x @ text.T, axis=1)[:, None] for x in reads]
+    rels = [relevancies(x @ text.T, x @ canon.T, truth) for x in reads]
+    table = np.concatenate([truth[:, None], *preds, *rels], axis=1)
     return {"heldout_cos": cos, "n_fit": len(fit), "crops": table.tolist()}
 
 
@@ -393,16 +391,15 @@ def ratio_interval(
 
 def summarise_code(results: list[dict]) -> dict:
     """The scene code's rows over seeds (amendment 6)."""
-    t = np.array([c for res in results for c in res.get("code", {}).get("crops", [])])
-    if not len(t):
+    pairs = [
+        (res["seed"], c)
+        for res in results
+        for c in res.get("code", {}).get("crops", [])
+    ]
+    if not pairs:
         return {}
-    cluster = np.array(
-        [
-            (res["seed"], c[0])
-            for res in results
-            for c in res.get("code", {}).get("crops", [])
-        ]
-    )
+    t = np.array([c for _, c in pairs])
+    cluster = np.array([(seed, c[0]) for seed, c in pairs])
     acc_raw, acc_code = (
         float(np.mean(t[:, 0] == t[:, 1])),
         float(np.mean(t[:, 0] == t[:, 2])),
