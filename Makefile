@@ -62,7 +62,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # Gaussians, 2.5 %, at relevancy score 0.477 on 2026-11-26's machine)
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo view test system-deps test-slurm lint format bench bench-accuracy bench-upstream bench-standin bench-multiapp bench-multiapp-3x bench-multiapp-v3 bench-multiapp-truth bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
+.PHONY: setup demo view test system-deps test-slurm lint format bench bench-accuracy bench-upstream bench-standin bench-multiapp bench-multiapp-3x bench-multiapp-v3 bench-multiapp-truth bench-multiapp-v4 bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
 
 setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml
@@ -221,6 +221,16 @@ bench-multiapp-truth: setup
 	$(BIN)/python bench/accuracy.py --preset small --standin 3 --seeds 160-177 --dev 160-168 \
 	  --data $(QDATA)/accuracy-v3-1x --work $(QWORK)/accuracy-v3-1x \
 	  --labels $(MULTIAPPTRUTH_LABELS) --base male-truth
+
+# issue 41, amendment 7: the same in stand-in 4's world (a learnt invariance), fresh
+# seeds dev 180-188, test 189-197; pass 1 (the default), then Table 4 (add
+# same-appearance-truth select-random-truth), then the pipeline's own segments
+# (MULTIAPPV4_LABELS=male no-multi-appearance langsplat)
+MULTIAPPV4_LABELS ?= 2d-truth 2d male-truth no-multi-appearance-truth langsplat-truth
+bench-multiapp-v4: setup
+	$(BIN)/python bench/accuracy.py --preset small --standin 4 --seeds 180-197 --dev 180-188 \
+	  --data $(QDATA)/accuracy-v4 --work $(QWORK)/accuracy-v4 \
+	  --labels $(MULTIAPPV4_LABELS) --base male-truth
 
 # how each stage's time, peak RSS and output quality grow with the collection (issue
 # 43 item 2): the landmark world at 100, 200, 400 and 763 photos, one size at a time,

@@ -477,7 +477,7 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", nargs="+", default=["300-303"])
     ap.add_argument("--cams", type=int, default=16, help="train cameras a seed")
-    ap.add_argument("--version", type=int, default=2, choices=(1, 2, 3))
+    ap.add_argument("--version", type=int, default=2, choices=(1, 2, 3, 4))
     ap.add_argument("--scale", type=int, default=3, help="photo side x the preset's")
     ap.add_argument(
         "--out", type=Path, default=ROOT / "work" / "standin" / "profile.json"

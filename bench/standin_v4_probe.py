@@ -17,16 +17,23 @@ Each seed's crops are reduced once to version 2's statistics and perturbation ke
 seconds plus the code's training. Variants:
 
   v3            version 3 as frozen (the check that the cache reproduces it)
+  v4            version 4 as shipped (`synthetic_v4`: lda:16:0.25:0.15:2.0)
   v3-quiet      version 3 without its keyed perturbation
   v3-capped     version 3 with the perturbation held at a clean crop's size
-  lda:K:NOISE   the statistics projected onto the K directions that best separate
+  groups:G=W,..:NOISE  version 3 with other group weights (colour, lum,
+                silhouette, layout, fine, coarse)
+  shrink:M:A:NOISE  version 3 with the bank's M leading within-part directions
+                (the views' and lights' main effects on a part's statistics)
+                scaled by A, then the keyed perturbation of relative size NOISE
+  lda:K:NOISE[:Q:BIG]  the statistics projected onto the K directions that best separate
                 parts from one another against their spread across views and
                 lights (Fisher's discriminant), fitted once on a bank of parts of
                 other worlds (--bank-seeds; never calibration or judged seeds)
                 under 12 azimuths and 7 lights (neutral, 3 daylight, black-and-
                 white, sepia, night); the keyed perturbation (relative size
                 NOISE, grown by the crop's distortion as in version 2) added in
-                that space, then a fixed random projection to 512-d.
+                that space, then a fixed random projection to 512-d; with Q
+                and BIG, a keyed share Q of crops gets BIG more perturbation.
 
 `--decompose` prints, per seed, the between-part and within-part variance of
 version 3's standardised statistics by group, the perturbation's share, and how
@@ -39,7 +46,6 @@ import argparse
 import pickle
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -48,19 +54,23 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import standin_profile as SP  # noqa: E402  (same folder)
 from common import ROOT, seed_list  # noqa: E402
 
-from ptovs.crop import prepare_crop  # noqa: E402
 from ptovs.encoders import synthetic as v1  # noqa: E402
 from ptovs.encoders import synthetic_v2 as v2  # noqa: E402
+from ptovs.encoders import synthetic_v4 as v4  # noqa: E402
 from ptovs.field.relevancy import CANONICAL  # noqa: E402
-from ptovs.synthetic.generate import plan_scene  # noqa: E402
-from ptovs.synthetic.world import neutral_appearance, render, render_swatch  # noqa: E402
-from ptovs.synthetic.world.appearance import sample_appearance  # noqa: E402
-from ptovs.synthetic.world.swatches import landmark_camera  # noqa: E402
+from ptovs.synthetic.world import render_swatch  # noqa: E402
 
 BANDS = {  # the table's rows this probe can read: relative change, (low, high)
     "bw": (-0.20, 0.0), "sepia": (-0.20, 0.0), "daylight": (-0.15, 0.02),
     "night": (-0.35, -0.05), "piece-70-100": (-0.25, 0.0),
     "piece-40-70": (-0.55, 0.0), "piece-10-40": (-0.75, -0.10),
+}  # fmt: skip
+FULL_BANDS = {  # the rest of the registered table (--full)
+    "contrast-5": (-0.20, -0.03), "contrast-3": (-0.45, -0.15),
+    "blur-3": (-0.30, -0.05), "blur-5": (-0.65, -0.30),
+    "res-64": (-0.30, -0.05), "res-32": (-0.65, -0.30), "jpeg-7": (-0.65, -0.20),
+    "noise-05": (-0.15, 0.0), "noise-20": (-0.65, -0.30),
+    "occluded-10%-30%": (-0.25, 0.0), "occluded-30%-60%": (-0.55, -0.10),
 }  # fmt: skip
 
 
@@ -71,13 +81,14 @@ def _stats(crops: np.ndarray) -> dict:
     }
 
 
-def cache_seed(seed: int, cache: Path) -> dict:
+def cache_seed(seed: int, cache: Path, full: bool = False) -> dict:
     """The code row's crops of a calibration seed (version 3's world) as
-    statistics and keys, with its phrases' and canonical phrases' crops."""
-    path = cache / f"s{seed}_v3.pkl"
+    statistics and keys, with its phrases' and canonical phrases' crops; with
+    `full`, every row of the table."""
+    path = cache / f"s{seed}_v3{'_full' if full else ''}.pkl"
     if path.is_file():
         return pickle.loads(path.read_bytes())
-    col = SP.collect(seed, 16, 3, 3, code_only=True)
+    col = SP.collect(seed, 16, 3, 3, code_only=not full)
     enc = SP.encoder(3, col["world"])
     rows = {}
     for row, items in col["rows"].items():
@@ -112,50 +123,16 @@ def cache_seed(seed: int, cache: Path) -> dict:
     return out
 
 
-def bank_lights() -> list:
-    rng = np.random.default_rng(20261128)
-    out = [neutral_appearance()]
-    while len(out) < 4:
-        a = sample_appearance(rng)
-        if a.sky in ("day", "overcast", "dusk") and not a.hard:
-            out.append(a)
-    out += [replace(neutral_appearance(), filter=f) for f in ("bw", "sepia")]
-    while len(out) < 7:
-        a = sample_appearance(rng)
-        if a.sky == "night":
-            out.append(a)
-    return out
-
-
 def cache_bank(seeds: list[int], cache: Path) -> dict:
-    """Parts of other worlds as segment crops: 12 azimuths x 7 lights; a class per
-    (world, part)."""
+    """Parts of other worlds as segment crops (`synthetic_v4.bank_statistics`):
+    12 azimuths x 7 lights; a class per (world, part)."""
     path = cache / f"bank_{seeds[0]}-{seeds[-1]}.pkl"
     if path.is_file():
         return pickle.loads(path.read_bytes())
-    raws, keys, cls, c0 = [], [], [], 0
-    for seed in seeds:
-        world = plan_scene("small", seed, 3).world
-        ids = [p.id for p in world.parts]
-        crops, lab = [], []
-        for az in range(-150, 181, 30):
-            cam = landmark_camera(world, float(az), 160)
-            for app in bank_lights():
-                v = render(world, cam, app, aa=1)
-                img = np.maximum(v.image.astype(np.float32) / 255.0, 1.0 / 255.0)
-                for j, pid in enumerate(ids):
-                    m = v.part_id == pid
-                    if m.sum() >= 64:
-                        crops.append(prepare_crop(img, m))
-                        lab.append(c0 + j)
-        s = _stats(np.stack(crops))
-        raws.append(s["raw"])
-        keys.append(s["key"])
-        cls += lab
-        c0 += len(ids)
-        print(f"bank world {seed}: {len(crops)} crops", flush=True)
-    out = {"raw": np.concatenate(raws), "key": np.concatenate(keys),
-           "cls": np.array(cls)}  # fmt: skip
+    raw, cls = v4.bank_statistics(
+        seeds, lambda s, n: print(f"bank world {s}: {n} crops", flush=True)
+    )
+    out = {"raw": raw, "cls": cls}
     cache.mkdir(parents=True, exist_ok=True)
     path.write_bytes(pickle.dumps(out))
     return out
@@ -164,10 +141,14 @@ def cache_bank(seeds: list[int], cache: Path) -> dict:
 # ------------------------------------------------------------------ variants
 
 
-def standardise(raw: np.ndarray) -> tuple[np.ndarray, float]:
+def standardise(
+    raw: np.ndarray, weights: dict | None = None
+) -> tuple[np.ndarray, float]:
     """Version 2's standardised, clipped, group-weighted statistics, and their
-    nominal norm (the perturbation's unit)."""
-    p = v2.PARAMS
+    nominal norm (the perturbation's unit); `weights` overrides group weights."""
+    if not weights:
+        return v2.standardised(raw)
+    p = {**v2.PARAMS, **{f"w_{k}": x for k, x in weights.items()}}
     bank = v2._bank()
     mean, scale = bank.mean(axis=0), np.maximum(bank.std(axis=0), 1e-3)
     gw = np.concatenate(
@@ -177,54 +158,71 @@ def standardise(raw: np.ndarray) -> tuple[np.ndarray, float]:
     return z, float(np.sqrt((gw * gw).sum()))
 
 
-def perturbation(raw, keys, dim: int, size: float, cap: float | None = None):
+def perturbation(raw, keys, dim: int, size: float, cap: float | None = None,
+                 spike: tuple[float, float] = (0.0, 0.0)):  # fmt: skip
+    """The keyed perturbation; with spike (Q, BIG), a keyed share Q of crops gets
+    BIG more (a flip of the crop's reading that another light does not share)."""
     amp = size * (1.0 + v2.distortion(raw, v2.PARAMS))
     if cap is not None:
         amp = np.minimum(amp, cap)
+    if spike[0] > 0:
+        hit = np.array([np.random.default_rng([int(k), 1]).random() < spike[0]
+                        for k in keys])  # fmt: skip
+        amp = amp + spike[1] * hit
     e = np.stack([np.random.default_rng(int(k)).standard_normal(dim) for k in keys])
     return amp[:, None] * e / np.sqrt(dim)
 
 
-def v3_content(size: float, cap: float | None = None):
-    """Version 2's `content` from cached statistics (the same up to float order)."""
+def v3_content(size: float, cap: float | None = None, weights: dict | None = None):
+    """Version 2's `content` from cached statistics (the same up to float order),
+    optionally with other group weights."""
     P, _ = v2._projection()
 
     def f(raw, keys):
-        z, norm = standardise(raw)
+        z, norm = standardise(raw, weights)
         z = z + norm * perturbation(raw, keys, v2.N_FEATURES, size, cap)
         return v1._normalise(z @ P)
 
     return f
 
 
-def fisher(bank: dict, k: int, ridge: float = 1e-3):
-    """The K directions of the statistics that best separate the bank's classes
-    against their within-class spread (within-class covariance whitened to I)."""
-    z, _ = standardise(bank["raw"])
-    mu = z.mean(0)
-    sw, sb = np.zeros((z.shape[1],) * 2), np.zeros((z.shape[1],) * 2)
-    for c in np.unique(bank["cls"]):
-        zc = z[bank["cls"] == c]
-        m = zc.mean(0)
-        sw += (zc - m).T @ (zc - m)
-        sb += len(zc) * np.outer(m - mu, m - mu)
-    sw = sw / len(z) + ridge * np.trace(sw / len(z)) / len(sw) * np.eye(len(sw))
-    li = np.linalg.inv(np.linalg.cholesky(sw))
-    ev, u = np.linalg.eigh(li @ (sb / len(z)) @ li.T)
-    order = np.argsort(ev)[::-1][:k]
-    V = li.T @ u[:, order]
-    scale = float(np.sqrt((((z - mu) @ V) ** 2).sum(1)).mean())
-    return mu, V, scale, ev[order]
-
-
-def lda_content(bank: dict, k: int, size: float):
-    mu, V, scale, _ = fisher(bank, k)
+def lda_content(bank: dict, k: int, size: float, spike=(0.0, 0.0)):
+    mu, V, scale, _ = v4.fisher(bank["raw"], bank["cls"], k)
     P = np.random.default_rng(v2.SEED + 11).standard_normal((k, v2.DIM))
 
     def f(raw, keys):
         z, _ = standardise(raw)
-        y = (z - mu) @ V + scale * perturbation(raw, keys, k, size)
+        y = (z - mu) @ V + scale * perturbation(raw, keys, k, size, spike=spike)
         return v1._normalise(y @ P / np.sqrt(v2.DIM))
+
+    return f
+
+
+def nuisance(bank: dict, m: int):
+    """The bank's M leading within-part directions of the standardised statistics
+    (how a part's crops vary across views and lights), orthonormal, and the mean."""
+    z, _ = standardise(bank["raw"])
+    w = np.concatenate(
+        [
+            z[bank["cls"] == c] - z[bank["cls"] == c].mean(0)
+            for c in np.unique(bank["cls"])
+        ]
+    )
+    _, ev, vt = np.linalg.svd(w, full_matrices=False)
+    return z.mean(0), vt[:m], (ev[:m] ** 2) / (ev**2).sum()
+
+
+def shrink_content(bank: dict, m: int, alpha: float, size: float):
+    """Version 3 with the bank's M leading nuisance directions scaled by ALPHA
+    before the keyed perturbation and the projection."""
+    P, _ = v2._projection()
+    mu, U, _ = nuisance(bank, m)
+
+    def f(raw, keys):
+        z, norm = standardise(raw)
+        z = z - (1.0 - alpha) * ((z - mu) @ U.T) @ U
+        z = z + norm * perturbation(raw, keys, v2.N_FEATURES, size)
+        return v1._normalise(z @ P)
 
     return f
 
@@ -277,14 +275,21 @@ def report(results: list[dict], label: str) -> None:
     print(f"{label}: clean {s['clean_accuracy']:.3f} (0.80-0.90), error lift "
           f"{s['error_lift']:.2f} (<= 3), relevancy own {s['relevancy_own']:.3f} "
           f"other {s['relevancy_other']:.3f}")  # fmt: skip
-    for name, (lo, hi) in BANDS.items():
+    bands = dict(BANDS)
+    if "blur-3" in s["rows"]:
+        bands.update(FULL_BANDS)
+        view = s["rows"]["view-60-180"]["accuracy"] / s["rows"]["view-0-30"]["accuracy"]
+        s["rows"]["view"] = {"relative": view - 1.0}
+        bands["view"] = (-0.30, -0.05)
+        print(f"  shape bias {s['shape_bias']:.2f} (0.40-0.70)")
+    for name, (lo, hi) in bands.items():
         r = s["rows"][name]["relative"]
         inband += lo <= r <= hi
-        print(f"  {name:14s} {100 * r:+4.0f} %  [{100 * lo:+.0f}, {100 * hi:+.0f}]")
+        print(f"  {name:16s} {100 * r:+4.0f} %  [{100 * lo:+.0f}, {100 * hi:+.0f}]")
     print(f"  code-3         {100 * c['relative']:+4.0f} % [{100 * c['relative_ci'][0]:+.0f},"
           f" {100 * c['relative_ci'][1]:+.0f}]  (-20 % - 0 %); through it relevancy own "
           f"{c['relevancy_own_code']:.3f}, other {c['relevancy_other_code']:.3f}")  # fmt: skip
-    print(f"  {inband} of {len(BANDS)} rows in band", flush=True)
+    print(f"  {inband} of {len(bands)} rows in band", flush=True)
 
 
 def decompose(d: dict) -> None:
@@ -334,9 +339,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--cache", type=Path, default=ROOT / "work" / "standin" / "v4probe")
     ap.add_argument("--variants", nargs="*", default=["v3"])
     ap.add_argument("--decompose", action="store_true")
+    ap.add_argument("--full", action="store_true", help="every row of the table")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    data = [cache_seed(s, args.cache) for s in seed_list(args.seeds)]
+    data = [cache_seed(s, args.cache, args.full) for s in seed_list(args.seeds)]
     print(f"seeds cached ({time.perf_counter() - t0:.0f} s)", flush=True)
     if args.decompose:
         for d in data:
@@ -345,15 +351,27 @@ def main(argv: list[str] | None = None) -> None:
     for v in args.variants:
         if v == "v3":
             f = v3_content(v2.PARAMS["noise"])
+        elif v == "v4":
+            f = v4.content_from
         elif v == "v3-quiet":
             f = v3_content(0.0)
         elif v == "v3-capped":
             f = v3_content(v2.PARAMS["noise"], cap=v2.PARAMS["noise"])
         elif v.startswith("lda:"):
-            _, k, size = v.split(":")
+            _, k, size, *sp = v.split(":")
             if bank is None:
                 bank = cache_bank(seed_list(args.bank_seeds), args.cache)
-            f = lda_content(bank, int(k), float(size))
+            spike = (float(sp[0]), float(sp[1])) if sp else (0.0, 0.0)
+            f = lda_content(bank, int(k), float(size), spike)
+        elif v.startswith("groups:"):  # groups:fine=1.0,silhouette=0.4:NOISE
+            _, spec, size = v.split(":")
+            w = {k: float(x) for k, x in (kv.split("=") for kv in spec.split(","))}
+            f = v3_content(float(size), weights=w)
+        elif v.startswith("shrink:"):
+            _, m, alpha, size = v.split(":")
+            if bank is None:
+                bank = cache_bank(seed_list(args.bank_seeds), args.cache)
+            f = shrink_content(bank, int(m), float(alpha), float(size))
         else:
             ap.error(f"unknown variant {v!r}")
         report([score(d, f) for d in data], v)

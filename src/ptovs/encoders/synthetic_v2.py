@@ -358,17 +358,27 @@ def distortion(raw: np.ndarray, params: dict | None = None) -> np.ndarray:
     return blur_deficit(raw, params) + chroma_decoupling(raw, params)
 
 
-def content(crops: np.ndarray, params: dict | None = None) -> np.ndarray:
-    """Unit content vectors [B, 512] float64 of crops [B, S, S, 3]."""
+def standardised(
+    raw: np.ndarray, params: dict | None = None
+) -> tuple[np.ndarray, float]:
+    """Statistics [B, N_FEATURES + N_AUX] standardised against the swatch bank,
+    clipped and group-weighted [B, N_FEATURES]; and their nominal norm (the unit
+    of the keyed perturbation)."""
     p = PARAMS if params is None else params
     bank = _bank() if params is None else raw_features(np.stack(v1._bank_swatches()), p)
     mean, scale = bank.mean(axis=0), np.maximum(bank.std(axis=0), 1e-3)
     gw = np.concatenate(
         [np.full(n, p[f"w_{name}"] / np.sqrt(n)) for name, n in _GROUPS]
     )
-    raw = raw_features(crops, p)
     z = np.clip((raw - mean) / scale, -ZCLIP, ZCLIP)[:, :N_FEATURES] * gw
-    norm = float(np.sqrt((gw * gw).sum()))
+    return z, float(np.sqrt((gw * gw).sum()))
+
+
+def content(crops: np.ndarray, params: dict | None = None) -> np.ndarray:
+    """Unit content vectors [B, 512] float64 of crops [B, S, S, 3]."""
+    p = PARAMS if params is None else params
+    raw = raw_features(crops, p)
+    z, norm = standardised(raw, params)
     amp = p["noise"] * (1.0 + distortion(raw, p))
     for b, crop in enumerate(crops):
         e = np.random.default_rng(_key(crop)).standard_normal(N_FEATURES)
@@ -429,22 +439,25 @@ def instances(tex: Texture, part_id: int) -> list[Texture]:
 _PART_CONTENT: dict[str, np.ndarray] = {}  # bounded: cleared past 256 entries
 
 
-def part_content(world: World, part_id: int) -> np.ndarray:
-    """Mean content of `part_crops`, cached by what those crops depend on: the
-    world's geometry and this part's texture (other parts' textures never show
-    in this part's pixels), so a screen that redraws one part re-renders one."""
+def part_content(world: World, part_id: int, fn=None) -> np.ndarray:
+    """Mean content of `part_crops` under the image side `fn` (default: this
+    version's `content`), cached by what those crops depend on: the world's
+    geometry and this part's texture (other parts' textures never show in this
+    part's pixels), so a screen that redraws one part re-renders one."""
+    fn = content if fn is None else fn
     d = world.to_dict()
     for q in d["parts"]:
         if q["id"] != part_id:
             q.pop("texture", None)
             q["name"] = q["query"] = ""
+    tag = [VERSION] if fn is content else [VERSION, fn.__module__, fn.__qualname__]
     key = hashlib.sha256(
-        json.dumps([d, part_id, VERSION, TEXT_PX], sort_keys=True).encode()
+        json.dumps([d, part_id, *tag, TEXT_PX], sort_keys=True).encode()
     ).hexdigest()
     if key not in _PART_CONTENT:
         if len(_PART_CONTENT) >= 256:
             _PART_CONTENT.clear()
-        out = content(np.stack(part_crops(world, part_id))).mean(axis=0)
+        out = fn(np.stack(part_crops(world, part_id))).mean(axis=0)
         out.flags.writeable = False
         _PART_CONTENT[key] = out
     return _PART_CONTENT[key]
@@ -486,6 +499,7 @@ class SyntheticEncoderV2(v1.SyntheticEncoder):
     phrase embeds as its parts' category description (`part_crops`)."""
 
     name = "synthetic-v2"
+    image_side = staticmethod(content)  # crops [B, S, S, 3] -> unit [B, 512]
 
     def __init__(self, vocabulary: str | Path | dict | None = None) -> None:
         super().__init__(vocabulary)
@@ -501,12 +515,15 @@ class SyntheticEncoderV2(v1.SyntheticEncoder):
             raise ValueError(f"crops must be [B, S, S, 3], got {crops.shape}")
         if len(crops) == 0:
             return np.zeros((0, DIM), np.float32)
-        return v1._embed(content(crops), 0)
+        return v1._embed(self.image_side(crops), 0)
 
     def _text_content(self, phrase: str) -> np.ndarray:
         key = phrase.strip().lower()
         if self._world is not None and key in self._parts:
-            acc = sum(part_content(self._world, pid) for pid in self._parts[key])
+            acc = sum(
+                part_content(self._world, pid, self.image_side)
+                for pid in self._parts[key]
+            )
             return v1._normalise(acc)
         if key == "sky" or key in self._generic or key in self._lower:
             return self._v2_swatch(phrase)
@@ -525,15 +542,15 @@ class SyntheticEncoderV2(v1.SyntheticEncoder):
         acc = np.zeros(DIM)
         for it in items:
             key = json.dumps(it["swatch"], sort_keys=True)
-            acc = acc + float(it["weight"]) * _swatch_content(key)
+            acc = acc + float(it["weight"]) * _swatch_content(key, self.image_side)
         return v1._normalise(acc)
 
 
 @functools.lru_cache(maxsize=1024)
-def _swatch_content(key: str) -> np.ndarray:
-    """Content of a swatch (its description as canonical JSON), shared by every
-    encoder of the process, as in version 1."""
-    out = content(render_swatch(json.loads(key))[None])[0]
+def _swatch_content(key: str, fn=content) -> np.ndarray:
+    """Content under the image side `fn` of a swatch (its description as
+    canonical JSON), shared by every encoder of the process, as in version 1."""
+    out = fn(render_swatch(json.loads(key))[None])[0]
     out.flags.writeable = False
     return out
 
