@@ -162,13 +162,11 @@ def perturbation(raw, keys, dim: int, size: float, cap: float | None = None,
                  spike: tuple[float, float] = (0.0, 0.0)):  # fmt: skip
     """The keyed perturbation; with spike (Q, BIG), a keyed share Q of crops gets
     BIG more (a flip of the crop's reading that another light does not share)."""
-    amp = size * (1.0 + v2.distortion(raw, v2.PARAMS))
-    if cap is not None:
+    amp = v4.perturbation_size(
+        raw, keys, {"noise": size, "flip": spike[0], "flip_size": spike[1]}
+    )
+    if cap is not None:  # (no variant caps and flips at once)
         amp = np.minimum(amp, cap)
-    if spike[0] > 0:
-        hit = np.array([np.random.default_rng([int(k), 1]).random() < spike[0]
-                        for k in keys])  # fmt: skip
-        amp = amp + spike[1] * hit
     e = np.stack([np.random.default_rng(int(k)).standard_normal(dim) for k in keys])
     return amp[:, None] * e / np.sqrt(dim)
 

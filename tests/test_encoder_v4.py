@@ -156,7 +156,6 @@ def test_crops_of_a_part_cluster_more_than_in_version_3(scene) -> None:
 
 def test_version_4_reads_version_3_worlds(scene) -> None:
     import json
-    from pathlib import Path  # noqa: F401
 
     from ptovs.encoders import standin_version, synthetic_encoder
 
