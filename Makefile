@@ -226,9 +226,13 @@ bench-multiapp-truth: setup
 # seeds dev 180-188, test 189-197; pass 1 (the default), then Table 4 (add
 # same-appearance-truth select-random-truth), then the pipeline's own segments
 # (MULTIAPPV4_LABELS=male no-multi-appearance langsplat)
+# Amendment 8, its replication on fresh seeds, all of them test (nothing is chosen):
+# MULTIAPPV4_SEEDS=198-215 MULTIAPPV4_DEV=999 (999: no seed of the list is dev)
 MULTIAPPV4_LABELS ?= 2d-truth 2d male-truth no-multi-appearance-truth langsplat-truth
+MULTIAPPV4_SEEDS ?= 180-197
+MULTIAPPV4_DEV ?= 180-188
 bench-multiapp-v4: setup
-	$(BIN)/python bench/accuracy.py --preset small --standin 4 --seeds 180-197 --dev 180-188 \
+	$(BIN)/python bench/accuracy.py --preset small --standin 4 --seeds $(MULTIAPPV4_SEEDS) --dev $(MULTIAPPV4_DEV) \
 	  --data $(QDATA)/accuracy-v4 --work $(QWORK)/accuracy-v4 \
 	  --labels $(MULTIAPPV4_LABELS) --base male-truth
 
