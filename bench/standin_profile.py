@@ -26,6 +26,10 @@ and the clean render is degraded as the published studies degrade images:
 
   contrast-5, contrast-3   the photo blended to mid grey at 5 % / 3 % contrast
                            (model-vs-human), 8-bit
+  contrast-5-levels, contrast-3-levels   (amendment 9) per part, the photo blended
+                           so that the part keeps the grey levels a whole real
+                           photograph keeps at 5 % / 3 %: contrast c * REAL_SPREAD /
+                           the part's own 5-95 % luminance range, at most 1
   jpeg-7                   the photo as JPEG quality 7 (ImageNet-C severity 5)
   blur-3, blur-5           Gaussian blur of the 224-px crop, sigma 3 / 5 px
   res-64, res-32           the 224-px crop through 64 / 32 px (LR0.FM)
@@ -94,6 +98,11 @@ PHOTO_ROWS = {  # photo-level degradations of the clean render (uint8 RGB)
     "contrast-3": lambda im: _contrast(im, 0.03),
     "jpeg-7": lambda im: _jpeg(im, 7),
 }
+# amendment 9: the median 5-95 % luminance range of whole real photographs at 224 px
+# (`tools/real_spread.py` on the two real photo sets: 19 photos), and the rows that
+# blend each part to the grey levels such a photograph keeps at 5 % / 3 % contrast
+REAL_SPREAD = 0.54
+LEVEL_ROWS = {"contrast-5-levels": 0.05, "contrast-3-levels": 0.03}
 APPEARANCE_ROWS = ("daylight", "night", "bw", "sepia")
 # a piece's share of its part's pixels in the view
 PIECE_BINS = ((0.0, 0.1), (0.1, 0.4), (0.4, 0.7), (0.7, 1.01))
@@ -121,6 +130,24 @@ def _through(crop: np.ndarray, px: int) -> np.ndarray:
 def _contrast(im: np.ndarray, c: float) -> np.ndarray:
     x = im.astype(np.float64) / 255.0
     return np.clip(np.round((c * x + (1 - c) * 0.5) * 255.0), 0, 255).astype(np.uint8)
+
+
+def luminance_spread(image: np.ndarray, mask: np.ndarray) -> float:
+    """The 5-95 % range of a uint8 RGB photo's luminance over `mask`, in [0, 1]."""
+    y = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)[mask]
+    if y.size == 0:
+        return 0.0
+    lo, hi = np.percentile(y.astype(np.float64) / 255.0, [5, 95])
+    return float(hi - lo)
+
+
+def level_contrast(c0: float, spread: float) -> float:
+    """The contrast that leaves a part of luminance range `spread` the grey levels a
+    whole photograph of range REAL_SPREAD keeps at contrast `c0` (at most 1: a flat
+    part keeps its photo as it is)."""
+    if spread <= 0.0:
+        return 1.0
+    return float(min(1.0, c0 * REAL_SPREAD / spread))
 
 
 def _jpeg(im: np.ndarray, quality: int) -> np.ndarray:
@@ -201,10 +228,12 @@ def collect(
     version: int = 2,
     preset: str = "small",
     code_only: bool = False,
+    levels_only: bool = False,
 ) -> dict:
     """Every row's crops (uint8) and truth labels for one calibration seed, in
     the world the generator makes for stand-in `version` (its screen's textures);
-    with `code_only`, the scene code's rows alone (`CODE_FIT`, pieces)."""
+    with `code_only`, the scene code's rows alone (`CODE_FIT`, pieces); with
+    `levels_only`, the clean crops and amendment 9's rows alone."""
     plan = plan_scene(preset, seed, version)
     world = plan.world
     phrases = sorted({p.query for p in world.parts})
@@ -227,6 +256,15 @@ def collect(
         if not parts:
             continue
         crops = {k: prepare_crop(clean.image, m) for k, m in parts}
+        for row, c0 in () if code_only else LEVEL_ROWS.items():
+            for k, m in parts:  # the part's spread kept in thousandths
+                r = luminance_spread(clean.image, m)
+                low = _contrast(clean.image, level_contrast(c0, r))
+                add(row, ci, k, prepare_crop(low, m), round(1e3 * r))
+        if levels_only:
+            for k, c in crops.items():
+                add("clean", ci, k, c)
+            continue
         known = {k for k, _ in parts}
         for k, share, m in pieces(clean.image, clean.part_id, 30 * scale * scale):
             row = _piece_row("piece", share)
@@ -430,6 +468,11 @@ def summarise(results: list[dict]) -> dict:
         rs = [r for res in results for r in res["rows"].get(name, [])]
         a = float(np.mean([r[2] == r[3] for r in rs])) if rs else float("nan")
         acc[name] = {"n": len(rs), "accuracy": a, "relative": a / base - 1.0}
+        if name in LEVEL_ROWS and rs:  # the parts' own spread, and the contrast given
+            r = np.array([x[4] for x in rs]) / 1e3
+            c = [level_contrast(LEVEL_ROWS[name], v) for v in r]
+            acc[name] |= {"median_spread": float(np.median(r)),
+                          "median_contrast": float(np.median(c))}  # fmt: skip
     if "native" in acc:  # the instrument's size: pieces against its whole parts
         for name, row in acc.items():
             if name.startswith("native-piece"):
@@ -466,9 +509,13 @@ def summarise(results: list[dict]) -> dict:
 
 
 def _one_seed(
-    n_cams: int, scale: int, version: int, code_only: bool, t0: float, seed: int
-) -> dict:
-    out = score(collect(seed, n_cams, scale, version, code_only=code_only), version)
+    n_cams: int, scale: int, version: int, code_only: bool, levels_only: bool,
+    t0: float, seed: int,
+) -> dict:  # fmt: skip
+    col = collect(
+        seed, n_cams, scale, version, code_only=code_only, levels_only=levels_only
+    )
+    out = score(col, version)
     print(f"seed {seed}: {time.perf_counter() - t0:.0f} s", flush=True)
     return out
 
@@ -485,12 +532,15 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--jobs", type=int, default=1, help="seeds measured at once")
     ap.add_argument("--code-only", action="store_true",
                     help="only the scene code's crops (amendment 6)")  # fmt: skip
+    ap.add_argument("--levels-only", action="store_true",
+                    help="only the clean crops and amendment 9's contrast rows")  # fmt: skip
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     seeds = seed_list(args.seeds)
     job = functools.partial(
-        _one_seed, args.cams, args.scale, args.version, args.code_only, t0
-    )
+        _one_seed, args.cams, args.scale, args.version, args.code_only,
+        args.levels_only, t0,
+    )  # fmt: skip
     if args.jobs > 1:
         ctx = multiprocessing.get_context("spawn")
         with ctx.Pool(args.jobs) as pool:
