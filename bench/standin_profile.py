@@ -103,6 +103,8 @@ PHOTO_ROWS = {  # photo-level degradations of the clean render (uint8 RGB)
 # blend each part to the grey levels such a photograph keeps at 5 % / 3 % contrast
 REAL_SPREAD = 0.54
 LEVEL_ROWS = {"contrast-5-levels": 0.05, "contrast-3-levels": 0.03}
+# with --levels-only, also the whole photo at milder contrasts (reported, no band)
+SWEEP_ROWS = {"contrast-10": 0.10, "contrast-20": 0.20, "contrast-50": 0.50}
 APPEARANCE_ROWS = ("daylight", "night", "bw", "sepia")
 # a piece's share of its part's pixels in the view
 PIECE_BINS = ((0.0, 0.1), (0.1, 0.4), (0.4, 0.7), (0.7, 1.01))
@@ -233,7 +235,7 @@ def collect(
     """Every row's crops (uint8) and truth labels for one calibration seed, in
     the world the generator makes for stand-in `version` (its screen's textures);
     with `code_only`, the scene code's rows alone (`CODE_FIT`, pieces); with
-    `levels_only`, the clean crops and amendment 9's rows alone."""
+    `levels_only`, the clean crops, amendment 9's rows and `SWEEP_ROWS` alone."""
     plan = plan_scene(preset, seed, version)
     world = plan.world
     phrases = sorted({p.query for p in world.parts})
@@ -264,6 +266,10 @@ def collect(
         if levels_only:
             for k, c in crops.items():
                 add("clean", ci, k, c)
+            for row, c0 in SWEEP_ROWS.items():
+                low = _contrast(clean.image, c0)
+                for k, m in parts:
+                    add(row, ci, k, prepare_crop(low, m))
             continue
         known = {k for k, _ in parts}
         for k, share, m in pieces(clean.image, clean.part_id, 30 * scale * scale):
@@ -407,8 +413,11 @@ def score(col: dict, version: int) -> dict:
         truths[row] = np.array([meta[2] for meta, _ in items])
         if row == "clean":
             rel = relevancies(emb @ text.T, emb @ canon.T, truths[row]).tolist()
-    return {"seed": col["seed"], "phrases": col["phrases"], "rows": out,
-            "relevancy": rel, "code": code_rows(embs, truths, text, canon)}  # fmt: skip
+    res = {"seed": col["seed"], "phrases": col["phrases"], "rows": out,
+           "relevancy": rel}  # fmt: skip
+    if any(r in embs for r in CODE_FIT if r != "clean"):  # not with --levels-only
+        res["code"] = code_rows(embs, truths, text, canon)
+    return res
 
 
 def ratio_interval(
@@ -483,7 +492,7 @@ def summarise(results: list[dict]) -> dict:
     out = {
         "clean_accuracy": base,
         "rows": acc,
-        "shape_bias": shape / max(shape + texture, 1),
+        "shape_bias": shape / (shape + texture) if shape + texture else float("nan"),
         "conflict": {"n": len(conf), "shape": shape, "texture": texture},
     }
     # error lift between two independent daylight renders of the same crops
@@ -533,7 +542,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--code-only", action="store_true",
                     help="only the scene code's crops (amendment 6)")  # fmt: skip
     ap.add_argument("--levels-only", action="store_true",
-                    help="only the clean crops and amendment 9's contrast rows")  # fmt: skip
+                    help="only the clean crops and amendment 9's contrast rows, "
+                    "with a sweep of milder contrasts")  # fmt: skip
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     seeds = seed_list(args.seeds)

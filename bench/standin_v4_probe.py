@@ -25,6 +25,8 @@ seconds plus the code's training. Variants:
   shrink:M:A:NOISE  version 3 with the bank's M leading within-part directions
                 (the views' and lights' main effects on a part's statistics)
                 scaled by A, then the keyed perturbation of relative size NOISE
+  drop:A-B[,C-D]:K:NOISE[:Q:BIG]  lda with the standardised statistics A..B
+                (inclusive indices) set to 0 in the bank and the crops
   lda:K:NOISE[:Q:BIG]  the statistics projected onto the K directions that best separate
                 parts from one another against their spread across views and
                 lights (Fisher's discriminant), fitted once on a bank of parts of
@@ -196,6 +198,26 @@ def lda_content(bank: dict, k: int, size: float, spike=(0.0, 0.0)):
     return f
 
 
+def drop_content(bank: dict, drop: list[tuple[int, int]], k: int, size: float,
+                 spike=(0.0, 0.0)):  # fmt: skip
+    """`lda_content` with the standardised statistics in the index ranges `drop`
+    (inclusive) set to 0, in the bank and in every crop (amendment 9's diagnosis:
+    which statistics carry the loss at low contrast)."""
+    keep = np.ones(v2.N_FEATURES)
+    for lo, hi in drop:
+        keep[lo : hi + 1] = 0.0
+    zb = standardise(bank["raw"])[0] * keep
+    mu, V, scale, _ = v4.fisher(bank["raw"], bank["cls"], k, z=zb)
+    P = np.random.default_rng(v2.SEED + 11).standard_normal((k, v2.DIM))
+
+    def f(raw, keys):
+        z = standardise(raw)[0] * keep
+        y = (z - mu) @ V + scale * perturbation(raw, keys, k, size, spike=spike)
+        return v1._normalise(y @ P / np.sqrt(v2.DIM))
+
+    return f
+
+
 def nuisance(bank: dict, m: int):
     """The bank's M leading within-part directions of the standardised statistics
     (how a part's crops vary across views and lights), orthonormal, and the mean."""
@@ -361,6 +383,13 @@ def main(argv: list[str] | None = None) -> None:
                 bank = cache_bank(seed_list(args.bank_seeds), args.cache)
             spike = (float(sp[0]), float(sp[1])) if sp else (0.0, 0.0)
             f = lda_content(bank, int(k), float(size), spike)
+        elif v.startswith("drop:"):  # drop:66-75,80-81:K:NOISE[:Q:BIG]
+            _, spec, k, size, *sp = v.split(":")
+            if bank is None:
+                bank = cache_bank(seed_list(args.bank_seeds), args.cache)
+            spike = (float(sp[0]), float(sp[1])) if sp else (0.0, 0.0)
+            rng = [tuple(int(x) for x in r.split("-")) for r in spec.split(",")]
+            f = drop_content(bank, rng, int(k), float(size), spike)
         elif v.startswith("groups:"):  # groups:fine=1.0,silhouette=0.4:NOISE
             _, spec, size = v.split(":")
             w = {k: float(x) for k, x in (kv.split("=") for kv in spec.split(","))}

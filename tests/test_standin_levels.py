@@ -97,3 +97,46 @@ def test_real_spread_tool(spread_tool, tmp_path, capsys):
     assert spread_tool.main([str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert out.startswith("1 photos: whole-photo spread median 0.7")  # 0.8 x 0.9
+
+
+def _square_crop(amplitude: float, ring: bool) -> np.ndarray:
+    """A 224-px crop: a textured square part on black; with `ring`, its outer
+    3 px darkened as a resize against black darkens them."""
+    rng = np.random.default_rng(3)
+    crop = np.zeros((224, 224, 3), np.float32)
+    tex = 0.5 + amplitude * (rng.random((144, 144)) - 0.5)
+    crop[40:184, 40:184] = tex[..., None]
+    if ring:
+        crop[40:184, 40:46] *= 0.3
+        crop[40:184, 178:184] *= 0.3
+        crop[40:46, 40:184] *= 0.3
+        crop[178:184, 40:184] *= 0.3
+    return crop
+
+
+def test_rim_share_sees_the_ring(tmp_path):
+    contrast = _load("bench_standin_contrast", ROOT / "bench" / "standin_contrast.py")
+    plain = contrast.rim_share(_square_crop(0.05, ring=False))
+    ringed = contrast.rim_share(_square_crop(0.05, ring=True))
+    assert plain == pytest.approx(1.0, abs=0.1)
+    assert ringed > 3.0  # a faint part: the ring holds most of the spread
+    assert np.isnan(contrast.rim_share(np.zeros((224, 224, 3), np.float32)))
+    with pytest.raises(SystemExit):
+        contrast.main(["--version", "4", "--rim", "3", "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit):
+        contrast.main(["--rim", "-1", "--out", str(tmp_path / "x")])
+
+
+def test_v2_rim_reads_inside_the_ring():
+    """rim 0 is version 2's statistics bit for bit; with rim 3 the luminance's
+    level and spread are the interior's, whatever the dark ring does."""
+    from ptovs.encoders import synthetic_v2 as v2
+
+    crops = np.stack([_square_crop(0.05, False), _square_crop(0.05, True)])
+    base = v2.raw_features(crops)
+    assert np.array_equal(base, v2.raw_features(crops, {**v2.PARAMS, "rim": 0}))
+    rim = v2.raw_features(crops, {**v2.PARAMS, "rim": 3})
+    lum = slice(10, 12)  # the "lum" group: mean and spread of the luminance
+    assert base[1, 11] > 3 * base[0, 11]  # the ring dominates the spread ...
+    assert rim[1, lum] == pytest.approx(rim[0, lum], rel=0.1)  # ... not inside it
+    assert np.isfinite(rim).all()

@@ -158,7 +158,7 @@ def _grid(v: np.ndarray, m: np.ndarray, g: int) -> np.ndarray:
     return np.where(ms > 0, vs / np.maximum(ms, 1e-9), 0.0).ravel()
 
 
-def _one(crop: np.ndarray, floor: float) -> np.ndarray:
+def _one(crop: np.ndarray, floor: float, rim: int = 0) -> np.ndarray:
     x = np.ascontiguousarray(crop, dtype=np.float32)
     valid = (cv2.cvtColor(x, cv2.COLOR_RGB2GRAY) > 0).astype(np.float32)
     w = _area(valid, _R)
@@ -192,8 +192,17 @@ def _one(crop: np.ndarray, floor: float) -> np.ndarray:
     for k in range(N_HUE):
         d = np.cos(hue - 2 * math.pi * k / N_HUE)
         out.append(float((np.maximum(d, 0.0) ** 2 * sat * m).sum() / wsat))
-    mu = pool(L)
-    sd = np.sqrt(pool((L - mu) ** 2))
+    # the luminance's level and spread; with `rim`, measured `rim` px inside the
+    # mask's edge, where the crop's resize has not mixed the part with the black
+    # outside (that dark ring is a constant step however faint the part is)
+    core, csum = m, msum
+    if rim:
+        k = np.ones((2 * rim + 1, 2 * rim + 1), np.uint8)
+        eroded = cv2.erode(m.astype(np.uint8), k).astype(np.float64)
+        if eroded.sum() >= 8:
+            core, csum = eroded, eroded.sum() + 1e-9
+    mu = pool(L, core, csum)
+    sd = np.sqrt(pool((L - mu) ** 2, core, csum))
     out += [mu, sd]
     # silhouette: occupancy grid and the mask's second moments
     out += list(_grid(m, np.ones_like(m), 4))
@@ -243,7 +252,7 @@ def _one(crop: np.ndarray, floor: float) -> np.ndarray:
     mag2 = gx * gx + gy * gy
     c2 = (gx * gx - gy * gy) / (mag2 + 1e-12)
     s2 = 2.0 * gx * gy / (mag2 + 1e-12)
-    mi = cv2.erode(m8, np.ones((3, 3), np.uint8)).astype(np.float64)
+    mi = cv2.erode(core.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(np.float64)
     wm = mi * np.sqrt(mag2)
     ws = wm.sum() + 1e-9
     for phi in np.arange(6) * (np.pi / 6):
@@ -253,7 +262,7 @@ def _one(crop: np.ndarray, floor: float) -> np.ndarray:
     # the pattern's value distribution (two-tone stripes against noise)
     zn = (L - mu) / (sd + floor)
     for k in range(len(LN_BINS)):
-        out.append(pool(v1._hat(zn, LN_BINS, k)))
+        out.append(pool(v1._hat(zn, LN_BINS, k), core, csum))
     out += coarse  # the order of _GROUPS: ..., fine, coarse
     # aux (not projected): how well chroma edges follow luminance edges, and how
     # strong the chroma edges are
@@ -285,7 +294,7 @@ def _key(crop: np.ndarray) -> int:
 def raw_features(crops: np.ndarray, params: dict | None = None) -> np.ndarray:
     """[B, N_FEATURES + N_AUX] float64 statistics of crops [B, S, S, 3] in [0, 1]."""
     p = PARAMS if params is None else params
-    out = np.stack([_one(c, p["floor"]) for c in crops])
+    out = np.stack([_one(c, p["floor"], int(p.get("rim", 0))) for c in crops])
     assert out.shape[1] == N_FEATURES + N_AUX
     return out
 

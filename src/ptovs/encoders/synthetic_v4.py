@@ -173,12 +173,17 @@ def bank_statistics(seeds, progress=None) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(raws), np.array(cls)
 
 
-def fisher(raw: np.ndarray, cls: np.ndarray, k: int = K, ridge: float = 1e-3):
+def fisher(
+    raw: np.ndarray, cls: np.ndarray, k: int = K, ridge: float = 1e-3,
+    z: np.ndarray | None = None,
+):  # fmt: skip
     """The k directions of the standardised statistics that best separate the
     classes against their within-class spread (within-class covariance whitened
     to I, ridge-regularised). Returns mean [N], directions [N, k], the mean norm
-    of the projected, centred rows, and the k eigenvalues."""
-    z, _ = v2.standardised(raw)
+    of the projected, centred rows, and the k eigenvalues. `z`, if given, stands
+    for the standardised statistics of `raw` (a probe's variant of them)."""
+    if z is None:
+        z, _ = v2.standardised(raw)
     mu = z.mean(0)
     n = z.shape[1]
     sw, sb = np.zeros((n, n)), np.zeros((n, n))
