@@ -89,7 +89,9 @@ N_HUE = 6
 ZCLIP = 3.0  # standardised statistics are clipped: no one cell of a grid dominates
 LN_BINS = np.linspace(-2.0, 2.0, 9)  # histogram of the normalised luminance
 
-# calibrated on crops of calibration seeds 300-305 (bench/standin_profile.py)
+# calibrated on crops of calibration seeds 300-305 (bench/standin_profile.py); an
+# optional "rim" (px, absent: 0) measures the luminance statistics that far inside
+# the mask's edge: no shipped version sets it (bench/standin_contrast.py --rim does)
 PARAMS: dict[str, float] = {
     "w_colour": 0.7,  # hue and colour spread (blind to saturation and contrast)
     "w_lum": 0.0,  # mean and spread of luminance: off (lighting, not identity)
