@@ -18,8 +18,9 @@ black outside, a dark ring of fixed depth however faint the part is; version 2's
 statistics normalise the luminance by the spread over the whole mask.
 
 `--rim N` reads with version 2's statistics measured N px inside the mask's edge
-(`synthetic_v2.PARAMS["rim"]`; the shipped versions use 0). Only for versions 2
-and 3: version 4's projection was fitted on rim-0 statistics.
+(`synthetic_v2.PARAMS["rim"]`; the shipped versions use 0), `--floor F` with another
+contrast normalisation floor ((L - mean) / (sd + F); the shipped 0.001). Only for
+versions 2 and 3: version 4's projection was fitted on the shipped statistics.
 """
 
 from __future__ import annotations
@@ -125,26 +126,32 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--version", type=int, default=4, choices=(2, 3, 4))
     ap.add_argument("--rim", type=int, default=0,
                     help="version 2's statistics this many px inside the mask's edge")  # fmt: skip
+    ap.add_argument("--floor", type=float, default=None,
+                    help="version 2's contrast normalisation floor (shipped: 0.001)")  # fmt: skip
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
     if args.rim < 0:
         ap.error("--rim must be >= 0")
-    if args.rim and args.version == 4:
-        ap.error("--rim needs --version 2 or 3 (version 4's projection is rim 0's)")
+    if args.floor is not None and not 0.0 < args.floor < 1.0:
+        ap.error("--floor must be in (0, 1): a flat part divides by it")
+    if (args.rim or args.floor is not None) and args.version == 4:
+        ap.error("--rim and --floor need --version 2 or 3 (version 4's projection "
+                 "was fitted on the shipped statistics)")  # fmt: skip
     v2.PARAMS["rim"] = args.rim  # this process only; the shipped versions use 0
+    if args.floor is not None:
+        v2.PARAMS["floor"] = args.floor
     t0 = time.perf_counter()
     results = []
     for seed in seed_list(args.seeds):
         results.append(measure(seed, args.version))
         print(f"seed {seed}: {time.perf_counter() - t0:.0f} s", flush=True)
     summary = summarise(results)
-    out = args.out or (
-        ROOT / "work" / "standin" / f"contrast_v{args.version}_rim{args.rim}.json"
-    )
+    tag = f"rim{args.rim}" + ("" if args.floor is None else f"_floor{args.floor:g}")
+    out = args.out or ROOT / "work" / "standin" / f"contrast_v{args.version}_{tag}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_file(out) as tmp:
         Path(tmp).write_text(json.dumps({"summary": summary, "seeds": results}))
-    print(f"version {args.version}, rim {args.rim}: clean "
+    print(f"version {args.version}, {tag}: clean "
           f"{summary['clean']['accuracy']:.3f} (n {summary['clean']['n']})")  # fmt: skip
     for name, r in summary.items():
         extra = (

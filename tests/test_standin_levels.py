@@ -125,6 +125,12 @@ def test_rim_share_sees_the_ring(tmp_path):
         contrast.main(["--version", "4", "--rim", "3", "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit):
         contrast.main(["--rim", "-1", "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit):
+        contrast.main(
+            ["--version", "4", "--floor", "1e-6", "--out", str(tmp_path / "x")]
+        )
+    with pytest.raises(SystemExit):
+        contrast.main(["--version", "3", "--floor", "0", "--out", str(tmp_path / "x")])
 
 
 def test_v2_rim_reads_inside_the_ring():
