@@ -41,7 +41,7 @@ from common import ROOT, seed_list  # noqa: E402
 from ptovs.atomic import atomic_file  # noqa: E402
 from ptovs.crop import prepare_crop  # noqa: E402
 from ptovs.encoders import synthetic_v2 as v2  # noqa: E402
-from ptovs.synthetic.generate import plan_scene, rerender  # noqa: E402
+from ptovs.synthetic.generate import plan_scene  # noqa: E402
 
 CONTRASTS = (0.5, 0.2, 0.05, 0.03)
 RIM_PX = 3  # the rim measure's depth, at the encoder's working size
@@ -66,24 +66,12 @@ def rim_share(crop: np.ndarray, depth: int = RIM_PX) -> float:
 def measure(seed: int, version: int, n_cams: int = 16, scale: int = 3) -> dict:
     """Per row, [truth, prediction] of every crop of one seed; the rim shares."""
     plan = plan_scene("small", seed, version)
-    world = plan.world
-    phrases = sorted({p.query for p in world.parts})
-    label = {p.id: phrases.index(p.query) for p in world.parts}
-    enc = SP.encoder(version, world)
+    phrases, label = SP.part_labels(plan.world)
+    enc = SP.encoder(version, plan.world)
     text = enc.encode_texts(phrases)
-    train = [i for i in range(len(plan.cams)) if i not in plan.test_ids]
-    rng = np.random.default_rng([seed, 41])  # the profile's cameras
-    cams = sorted(rng.choice(train, min(n_cams, len(train)), replace=False).tolist())
     rows: dict[str, list] = {}
     rims: dict[str, list] = {}
-    for ci in cams:
-        cam = plan.cams[ci].scaled(scale)
-        rec = {"image_id": ci, **cam.to_dict()}
-        need = max(64 * scale * scale, int(SP.MIN_FRAC * cam.width * cam.height))
-        clean, _ = rerender(world, rec, "neutral", "none", seed=seed)
-        parts = SP._parts(clean, need)
-        if not parts:
-            continue
+    for _ci, _cam, _rec, clean, parts in SP.clean_views(plan, seed, n_cams, scale):
         x = clean.image.astype(np.float32) / np.float32(255.0)
         crops = {"clean": [prepare_crop(clean.image, m) for _, m in parts]}
         for c in CONTRASTS:

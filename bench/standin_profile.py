@@ -217,6 +217,30 @@ def _piece_row(prefix: str, share: float) -> str | None:
     return None
 
 
+def part_labels(world) -> tuple[list[str], dict[int, int]]:
+    """The scene's part phrases (sorted) and each part's index among them."""
+    phrases = sorted({p.query for p in world.parts})
+    return phrases, {p.id: phrases.index(p.query) for p in world.parts}
+
+
+def clean_views(plan, seed: int, n_cams: int, scale: int):
+    """The calibration's views of a seed: `n_cams` train cameras drawn by the seed,
+    at `scale` x the preset's side, each rendered under the neutral daylight without
+    occluders. Yields (camera index, camera, its record, the render, its parts big
+    enough to cut) for the cameras that show any part."""
+    train = [i for i in range(len(plan.cams)) if i not in plan.test_ids]
+    rng = np.random.default_rng([seed, 41])
+    cams = sorted(rng.choice(train, min(n_cams, len(train)), replace=False).tolist())
+    for ci in cams:
+        cam = plan.cams[ci].scaled(scale)
+        rec = {"image_id": ci, **cam.to_dict()}
+        need = max(64 * scale * scale, int(MIN_FRAC * cam.width * cam.height))
+        clean, _ = rerender(plan.world, rec, "neutral", "none", seed=seed)
+        parts = _parts(clean, need)
+        if parts:
+            yield ci, cam, rec, clean, parts
+
+
 def encoder(version: int, world, preset: str = "small"):
     """The stand-in of `version` for a world, from its vocabulary as the generator
     writes it."""
@@ -238,25 +262,14 @@ def collect(
     `levels_only`, the clean crops, amendment 9's rows and `SWEEP_ROWS` alone."""
     plan = plan_scene(preset, seed, version)
     world = plan.world
-    phrases = sorted({p.query for p in world.parts})
-    label = {p.id: phrases.index(p.query) for p in world.parts}
-    train = [i for i in range(len(plan.cams)) if i not in plan.test_ids]
-    rng = np.random.default_rng([seed, 41])
-    cams = sorted(rng.choice(train, min(n_cams, len(train)), replace=False).tolist())
+    phrases, label = part_labels(world)
     rows: dict[str, list] = {}  # row -> [(cam, part, truth[, texture's label]), crop]
 
     def add(row: str, ci: int, pid: int, crop: np.ndarray, *extra: int) -> None:
         c8 = np.round(np.clip(crop, 0.0, 1.0) * 255.0).astype(np.uint8)
         rows.setdefault(row, []).append(((ci, pid, label[pid], *extra), c8))
 
-    for ci in cams:
-        cam = plan.cams[ci].scaled(scale)
-        rec = {"image_id": ci, **cam.to_dict()}
-        need = max(64 * scale * scale, int(MIN_FRAC * cam.width * cam.height))
-        clean, _ = rerender(world, rec, "neutral", "none", seed=seed)
-        parts = _parts(clean, need)
-        if not parts:
-            continue
+    for ci, cam, rec, clean, parts in clean_views(plan, seed, n_cams, scale):
         crops = {k: prepare_crop(clean.image, m) for k, m in parts}
         for row, c0 in () if code_only else LEVEL_ROWS.items():
             for k, m in parts:  # the part's spread kept in thousandths

@@ -186,27 +186,16 @@ def v3_content(size: float, cap: float | None = None, weights: dict | None = Non
     return f
 
 
-def lda_content(bank: dict, k: int, size: float, spike=(0.0, 0.0)):
-    mu, V, scale, _ = v4.fisher(bank["raw"], bank["cls"], k)
-    P = np.random.default_rng(v2.SEED + 11).standard_normal((k, v2.DIM))
-
-    def f(raw, keys):
-        z, _ = standardise(raw)
-        y = (z - mu) @ V + scale * perturbation(raw, keys, k, size, spike=spike)
-        return v1._normalise(y @ P / np.sqrt(v2.DIM))
-
-    return f
-
-
-def drop_content(bank: dict, drop: list[tuple[int, int]], k: int, size: float,
-                 spike=(0.0, 0.0)):  # fmt: skip
-    """`lda_content` with the standardised statistics in the index ranges `drop`
-    (inclusive) set to 0, in the bank and in every crop (amendment 9's diagnosis:
-    which statistics carry the loss at low contrast)."""
+def lda_content(bank: dict, k: int, size: float, spike=(0.0, 0.0),
+                drop: list[tuple[int, int]] = ()):  # fmt: skip
+    """Fisher's projection of the bank, the keyed perturbation in its space, the
+    fixed projection to 512-d; with `drop`, the standardised statistics in those
+    index ranges (inclusive) set to 0 in the bank and in every crop (amendment 9's
+    diagnosis: which statistics carry the loss at low contrast)."""
     keep = np.ones(v2.N_FEATURES)
     for lo, hi in drop:
         keep[lo : hi + 1] = 0.0
-    zb = standardise(bank["raw"])[0] * keep
+    zb = standardise(bank["raw"])[0] * keep if drop else None
     mu, V, scale, _ = v4.fisher(bank["raw"], bank["cls"], k, z=zb)
     P = np.random.default_rng(v2.SEED + 11).standard_normal((k, v2.DIM))
 
@@ -377,19 +366,15 @@ def main(argv: list[str] | None = None) -> None:
             f = v3_content(0.0)
         elif v == "v3-capped":
             f = v3_content(v2.PARAMS["noise"], cap=v2.PARAMS["noise"])
-        elif v.startswith("lda:"):
-            _, k, size, *sp = v.split(":")
+        elif v.startswith(("lda:", "drop:")):  # [drop:66-75,80-81:]K:NOISE[:Q:BIG]
+            head, *rest = v.split(":")
+            spec = rest.pop(0) if head == "drop" else ""
+            k, size, *sp = rest
             if bank is None:
                 bank = cache_bank(seed_list(args.bank_seeds), args.cache)
             spike = (float(sp[0]), float(sp[1])) if sp else (0.0, 0.0)
-            f = lda_content(bank, int(k), float(size), spike)
-        elif v.startswith("drop:"):  # drop:66-75,80-81:K:NOISE[:Q:BIG]
-            _, spec, k, size, *sp = v.split(":")
-            if bank is None:
-                bank = cache_bank(seed_list(args.bank_seeds), args.cache)
-            spike = (float(sp[0]), float(sp[1])) if sp else (0.0, 0.0)
-            rng = [tuple(int(x) for x in r.split("-")) for r in spec.split(",")]
-            f = drop_content(bank, rng, int(k), float(size), spike)
+            drop = [tuple(int(x) for x in r.split("-")) for r in spec.split(",") if r]
+            f = lda_content(bank, int(k), float(size), spike, drop)
         elif v.startswith("groups:"):  # groups:fine=1.0,silhouette=0.4:NOISE
             _, spec, size = v.split(":")
             w = {k: float(x) for k, x in (kv.split("=") for kv in spec.split(","))}
