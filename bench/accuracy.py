@@ -1097,7 +1097,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--labels", nargs="+", default=list(LABELS), choices=ALL_LABELS)
     ap.add_argument("--config", type=Path, default=ROOT / "configs" / "accuracy.toml")
     ap.add_argument("--data", type=Path, default=ROOT / "data" / "accuracy")
-    ap.add_argument("--standin", type=int, default=1, choices=(1, 2, 3, 4),
+    ap.add_argument("--standin", type=int, default=1, choices=(1, 2, 3, 4, 5),
                     help="the stand-in for CLIP the scenes are made for (issue 41: "
                          "2 or 3, each with its own --data and --work)")  # fmt: skip
     ap.add_argument("--work", type=Path, default=ROOT / "work" / "accuracy")

@@ -111,7 +111,7 @@ def probe_parser(doc: str, preset: str) -> argparse.ArgumentParser:
     ap.add_argument("--data", type=Path, required=True)
     ap.add_argument("--work", type=Path, required=True)
     ap.add_argument("--preset", default=preset)
-    ap.add_argument("--standin", type=int, default=3, choices=(1, 2, 3, 4))
+    ap.add_argument("--standin", type=int, default=3, choices=(1, 2, 3, 4, 5))
     ap.add_argument("--seeds", nargs="+", required=True, help="seeds or ranges (0-8)")
     return ap
 

@@ -18,9 +18,11 @@ black outside, a dark ring of fixed depth however faint the part is; version 2's
 statistics normalise the luminance by the spread over the whole mask.
 
 `--rim N` reads with version 2's statistics measured N px inside the mask's edge
-(`synthetic_v2.PARAMS["rim"]`; the shipped versions use 0), `--floor F` with another
+(`synthetic_v2.PARAMS["rim"]`; versions 2 to 4 use 0), `--set` with version 5's
+other options (`robust=1 core_texture=1 clip_ln=3`), `--floor F` with another
 contrast normalisation floor ((L - mean) / (sd + F); the shipped 0.001). Only for
-versions 2 and 3: version 4's projection was fitted on the shipped statistics.
+versions 2 and 3: versions 4 and 5 read through projections fitted on their own
+statistics (version 5 reads inside the rim already).
 """
 
 from __future__ import annotations
@@ -111,23 +113,33 @@ def summarise(results: list[dict]) -> dict:
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", nargs="+", default=["300-302"])
-    ap.add_argument("--version", type=int, default=4, choices=(2, 3, 4))
+    ap.add_argument("--version", type=int, default=4, choices=(2, 3, 4, 5))
     ap.add_argument("--rim", type=int, default=0,
                     help="version 2's statistics this many px inside the mask's edge")  # fmt: skip
     ap.add_argument("--floor", type=float, default=None,
                     help="version 2's contrast normalisation floor (shipped: 0.001)")  # fmt: skip
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=V",
+                    help="more of version 5's options for versions 2 and 3: "
+                    "robust=1, core_texture=1, clip_ln=3")  # fmt: skip
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
+    options = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        if key not in ("robust", "core_texture", "clip_ln") or not value:
+            ap.error(f"--set {item!r}: one of robust=, core_texture=, clip_ln=")
+        options[key] = float(value)
     if args.rim < 0:
         ap.error("--rim must be >= 0")
     if args.floor is not None and not 0.0 < args.floor < 1.0:
         ap.error("--floor must be in (0, 1): a flat part divides by it")
-    if (args.rim or args.floor is not None) and args.version == 4:
-        ap.error("--rim and --floor need --version 2 or 3 (version 4's projection "
-                 "was fitted on the shipped statistics)")  # fmt: skip
+    if (args.rim or args.floor is not None or options) and args.version >= 4:
+        ap.error("--rim, --floor and --set need --version 2 or 3 (versions 4 and 5 read "
+                 "through a projection fitted on their own statistics)")  # fmt: skip
     v2.PARAMS["rim"] = args.rim  # this process only; the shipped versions use 0
     if args.floor is not None:
         v2.PARAMS["floor"] = args.floor
+    v2.PARAMS.update(options)
     t0 = time.perf_counter()
     results = []
     for seed in seed_list(args.seeds):
@@ -135,6 +147,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"seed {seed}: {time.perf_counter() - t0:.0f} s", flush=True)
     summary = summarise(results)
     tag = f"rim{args.rim}" + ("" if args.floor is None else f"_floor{args.floor:g}")
+    tag += "".join(f"_{k}{v:g}" for k, v in options.items())
     out = args.out or ROOT / "work" / "standin" / f"contrast_v{args.version}_{tag}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_file(out) as tmp:

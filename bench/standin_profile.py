@@ -104,7 +104,9 @@ PHOTO_ROWS = {  # photo-level degradations of the clean render (uint8 RGB)
 REAL_SPREAD = 0.54
 LEVEL_ROWS = {"contrast-5-levels": 0.05, "contrast-3-levels": 0.03}
 # with --levels-only, also the whole photo at milder contrasts (reported, no band)
+# and at the registered rows' (the same crops as PHOTO_ROWS' contrast rows)
 SWEEP_ROWS = {"contrast-10": 0.10, "contrast-20": 0.20, "contrast-50": 0.50}
+LEVELS_ONLY_ROWS = {**SWEEP_ROWS, "contrast-5": 0.05, "contrast-3": 0.03}
 APPEARANCE_ROWS = ("daylight", "night", "bw", "sepia")
 # a piece's share of its part's pixels in the view
 PIECE_BINS = ((0.0, 0.1), (0.1, 0.4), (0.4, 0.7), (0.7, 1.01))
@@ -259,7 +261,7 @@ def collect(
     """Every row's crops (uint8) and truth labels for one calibration seed, in
     the world the generator makes for stand-in `version` (its screen's textures);
     with `code_only`, the scene code's rows alone (`CODE_FIT`, pieces); with
-    `levels_only`, the clean crops, amendment 9's rows and `SWEEP_ROWS` alone."""
+    `levels_only`, the clean crops, amendment 9's rows and `LEVELS_ONLY_ROWS` alone."""
     plan = plan_scene(preset, seed, version)
     world = plan.world
     phrases, label = part_labels(world)
@@ -279,7 +281,7 @@ def collect(
         if levels_only:
             for k, c in crops.items():
                 add("clean", ci, k, c)
-            for row, c0 in SWEEP_ROWS.items():
+            for row, c0 in LEVELS_ONLY_ROWS.items():
                 low = _contrast(clean.image, c0)
                 for k, m in parts:
                     add(row, ci, k, prepare_crop(low, m))
@@ -546,7 +548,7 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", nargs="+", default=["300-303"])
     ap.add_argument("--cams", type=int, default=16, help="train cameras a seed")
-    ap.add_argument("--version", type=int, default=2, choices=(1, 2, 3, 4))
+    ap.add_argument("--version", type=int, default=2, choices=(1, 2, 3, 4, 5))
     ap.add_argument("--scale", type=int, default=3, help="photo side x the preset's")
     ap.add_argument(
         "--out", type=Path, default=ROOT / "work" / "standin" / "profile.json"

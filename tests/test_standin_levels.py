@@ -131,6 +131,29 @@ def test_rim_share_sees_the_ring(tmp_path):
         )
     with pytest.raises(SystemExit):
         contrast.main(["--version", "3", "--floor", "0", "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit):
+        contrast.main(["--version", "5", "--rim", "3", "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit):
+        contrast.main(
+            ["--version", "3", "--set", "rim=3", "--out", str(tmp_path / "x")]
+        )
+    with pytest.raises(SystemExit):
+        contrast.main(
+            ["--version", "4", "--set", "robust=1", "--out", str(tmp_path / "x")]
+        )
+
+
+def test_v5_sweep_refuses_what_it_cannot_sweep(tmp_path, capsys):
+    """The sweep's grid is the perturbation's constants only: a statistic's option
+    (which would need a refit projection), an unknown name or an empty axis fails
+    before anything is rendered."""
+    sweep = _load("bench_standin_v5_sweep", ROOT / "bench" / "standin_v5_sweep.py")
+    for bad, why in ((["rim=2"], "refit the projection"), (["no_such=1"], "NAME=V1,V2"),
+                     (["k4="], "NAME=V1,V2"), (["robust=0"], "refit the projection")):  # fmt: skip
+        with pytest.raises(SystemExit):
+            sweep.main(["--set", *bad, "--out", str(tmp_path / "x.json")])
+        assert why in capsys.readouterr().err
+    assert not (tmp_path / "x.json").exists()
 
 
 def test_v2_rim_reads_inside_the_ring():

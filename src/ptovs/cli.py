@@ -285,13 +285,15 @@ def main(
 )
 @click.option(
     "--standin",
-    type=click.Choice(["1", "2", "3", "4"]),
+    type=click.Choice(["1", "2", "3", "4", "5"]),
     default="1",
     show_default=True,
     help="The stand-in for CLIP the scene is written for: 1 (the original), 2 "
     "(calibrated against CLIP's published failure profile), 3 (2 with "
-    "'building' as the average of the part phrases) or 4 (3 read through a "
-    "learnt invariance, so a scene's crops cluster by part); docs/standin.md.",
+    "'building' as the average of the part phrases), 4 (3 read through a "
+    "learnt invariance, so a scene's crops cluster by part) or 5 (4 reading the "
+    "part inside its crop's dark rim, so contrast costs what it costs CLIP); "
+    "docs/standin.md.",
 )
 def synth_scene(
     out: Path,

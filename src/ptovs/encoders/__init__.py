@@ -21,7 +21,7 @@ from ptovs.crop import prepare_crop  # the encoders' input, defined below them
 logger = logging.getLogger(__name__)
 
 ENCODERS = ("synthetic", "openclip")
-STANDIN_VERSIONS = (1, 2, 3, 4)
+STANDIN_VERSIONS = (1, 2, 3, 4, 5)
 
 
 @runtime_checkable
@@ -41,11 +41,11 @@ class Encoder(Protocol):
 
 
 def standin_version(vocabulary: dict | None) -> int:
-    """Which stand-in a synthetic scene's vocabulary was written for (1 to 4)."""
+    """Which stand-in a synthetic scene's vocabulary was written for (1 to 5)."""
     v = (vocabulary or {}).get("version", 1)
     if v not in STANDIN_VERSIONS:
         raise ValueError(
-            f"unknown stand-in version {v!r} in the vocabulary (1, 2, 3 or 4)"
+            f"unknown stand-in version {v!r} in the vocabulary (1, 2, 3, 4 or 5)"
         )
     return int(v)
 
@@ -56,7 +56,8 @@ def synthetic_encoder(vocabulary=None) -> Encoder:
     Args:
         vocabulary: path to vocabulary.json, its dict, or None (version 1, generic
             phrases only). Version 1 is `encoders.synthetic`; versions 2 and 3
-            (issue 41) `encoders.synthetic_v2`; version 4 `encoders.synthetic_v4`.
+            (issue 41) `encoders.synthetic_v2`; version 4 `encoders.synthetic_v4`;
+            version 5 `encoders.synthetic_v5`.
     """
     import json
     from pathlib import Path
@@ -70,6 +71,10 @@ def synthetic_encoder(vocabulary=None) -> Encoder:
             raise FileNotFoundError(f"vocabulary {path} not found")
         vocab = json.loads(path.read_text())
     version = standin_version(vocab)
+    if version == 5:
+        from ptovs.encoders import synthetic_v5
+
+        return synthetic_v5.SyntheticEncoderV5(vocab)
     if version == 4:
         from ptovs.encoders import synthetic_v4
 

@@ -89,9 +89,12 @@ N_HUE = 6
 ZCLIP = 3.0  # standardised statistics are clipped: no one cell of a grid dominates
 LN_BINS = np.linspace(-2.0, 2.0, 9)  # histogram of the normalised luminance
 
-# calibrated on crops of calibration seeds 300-305 (bench/standin_profile.py); an
-# optional "rim" (px, absent: 0) measures the luminance statistics that far inside
-# the mask's edge: no shipped version sets it (bench/standin_contrast.py --rim does)
+# calibrated on crops of calibration seeds 300-305 (bench/standin_profile.py).
+# Optional keys, absent (off) in versions 2 to 4 and set by version 5
+# (`synthetic_v5.STATS`): "rim" (px) measures the luminance statistics that far
+# inside the mask's edge; "robust" takes their level and spread as the median and
+# interquartile range; "core_texture" filters the texture on that core only;
+# "clip_ln" clips the normalised luminance to +- that many spreads
 PARAMS: dict[str, float] = {
     "w_colour": 0.7,  # hue and colour spread (blind to saturation and contrast)
     "w_lum": 0.0,  # mean and spread of luminance: off (lighting, not identity)
@@ -160,7 +163,11 @@ def _grid(v: np.ndarray, m: np.ndarray, g: int) -> np.ndarray:
     return np.where(ms > 0, vs / np.maximum(ms, 1e-9), 0.0).ravel()
 
 
-def _one(crop: np.ndarray, floor: float, rim: int = 0) -> np.ndarray:
+def _one(crop: np.ndarray, p: dict) -> np.ndarray:
+    """Version 2's statistics of one crop under the options of `p` (`PARAMS`)."""
+    floor, rim = p["floor"], int(p.get("rim", 0))
+    core_texture = bool(p.get("core_texture", 0))
+    clip_ln = float(p.get("clip_ln", 0.0))
     x = np.ascontiguousarray(crop, dtype=np.float32)
     valid = (cv2.cvtColor(x, cv2.COLOR_RGB2GRAY) > 0).astype(np.float32)
     w = _area(valid, _R)
@@ -180,14 +187,15 @@ def _one(crop: np.ndarray, floor: float, rim: int = 0) -> np.ndarray:
     o2 = 0.5 * (c[..., 0] + c[..., 1]) - c[..., 2]
     sat = np.sqrt(o1 * o1 + o2 * o2) + 1e-9
     mo1, mo2 = pool(o1), pool(o2)
-    ms = np.sqrt(mo1 * mo1 + mo2 * mo2) + 1e-3
+    e_hue, e_sat = 1e-3, 0.02  # keep a grey crop's hue and spread finite
+    ms = np.sqrt(mo1 * mo1 + mo2 * mo2) + e_hue
     out += [mo1 / ms, mo2 / ms]
     # how far the colours spread about their mean (two-colour patterns), relative
     # to the mean saturation: also blind to contrast
     msat = pool(sat)
     out += [
-        np.sqrt(pool((o1 - mo1) ** 2)) / (msat + 0.02),
-        np.sqrt(pool((o2 - mo2) ** 2)) / (msat + 0.02),
+        np.sqrt(pool((o1 - mo1) ** 2)) / (msat + e_sat),
+        np.sqrt(pool((o2 - mo2) ** 2)) / (msat + e_sat),
     ]
     hue = np.arctan2(o2, o1)
     wsat = (sat * m).sum() + 1e-9
@@ -205,7 +213,15 @@ def _one(crop: np.ndarray, floor: float, rim: int = 0) -> np.ndarray:
             core, csum = eroded, eroded.sum() + 1e-9
     mu = pool(L, core, csum)
     sd = np.sqrt(pool((L - mu) ** 2, core, csum))
-    out += [mu, sd]
+    lum = [mu, sd]
+    if p.get("robust", 0) and core.sum() > 0:
+        # the level and spread of the bulk of the core, which a ring deeper than
+        # `rim` (a small part upsampled) moves little; the "lum" group (weighted 0)
+        # then holds the median and the 5-95 % range (`faintness` reads it)
+        q = np.percentile(L[core > 0], (5, 25, 50, 75, 95))
+        mu, sd = float(q[2]), float(q[3] - q[1]) / 1.349
+        lum = [mu, float(q[4] - q[0])]
+    out += lum
     # silhouette: occupancy grid and the mask's second moments
     out += list(_grid(m, np.ones_like(m), 4))
     yy, xx = np.mgrid[0:_R, 0:_R] / (_R - 1.0) - 0.5
@@ -221,11 +237,19 @@ def _one(crop: np.ndarray, floor: float, rim: int = 0) -> np.ndarray:
     ]
     # layout and texture on the contrast-normalised luminance
     Ln = (L - mu) / (sd + floor) * m
+    if clip_ln:
+        Ln = np.clip(Ln, -clip_ln, clip_ln)
     out += list(_grid(Ln, m, 4))
     m8 = m.astype(np.uint8)
-    half_m = (_area(m.astype(np.float32), _R // 2) >= 0.5).astype(np.float64)
+    tm = m
+    if core_texture:
+        # texture read on the core only: the rim and the outside stand at the
+        # core's mean (0), so the mask's edge is no step the filters answer to
+        tm = core
+        Ln = Ln * core
+    half_m = (_area(tm.astype(np.float32), _R // 2) >= 0.5).astype(np.float64)
     levels = {  # factor -> (luminance, mask) at that resolution
-        1: (Ln.astype(np.float32), m),
+        1: (Ln.astype(np.float32), tm),
         2: (_area(Ln.astype(np.float32), _R // 2).astype(np.float32), half_m),
     }
     energy = np.zeros((len(WAVELENGTHS), len(THETAS)))
@@ -296,7 +320,7 @@ def _key(crop: np.ndarray) -> int:
 def raw_features(crops: np.ndarray, params: dict | None = None) -> np.ndarray:
     """[B, N_FEATURES + N_AUX] float64 statistics of crops [B, S, S, 3] in [0, 1]."""
     p = PARAMS if params is None else params
-    out = np.stack([_one(c, p["floor"], int(p.get("rim", 0))) for c in crops])
+    out = np.stack([_one(c, p) for c in crops])
     assert out.shape[1] == N_FEATURES + N_AUX
     return out
 
@@ -369,6 +393,11 @@ def distortion(raw: np.ndarray, params: dict | None = None) -> np.ndarray:
     return blur_deficit(raw, params) + chroma_decoupling(raw, params)
 
 
+@functools.lru_cache(maxsize=8)
+def _bank_for(items: tuple) -> np.ndarray:
+    return raw_features(np.stack(v1._bank_swatches()), dict(items))
+
+
 def standardised(
     raw: np.ndarray, params: dict | None = None
 ) -> tuple[np.ndarray, float]:
@@ -376,7 +405,7 @@ def standardised(
     clipped and group-weighted [B, N_FEATURES]; and their nominal norm (the unit
     of the keyed perturbation)."""
     p = PARAMS if params is None else params
-    bank = _bank() if params is None else raw_features(np.stack(v1._bank_swatches()), p)
+    bank = _bank() if params is None else _bank_for(tuple(sorted(p.items())))
     mean, scale = bank.mean(axis=0), np.maximum(bank.std(axis=0), 1e-3)
     gw = np.concatenate(
         [np.full(n, p[f"w_{name}"] / np.sqrt(n)) for name, n in _GROUPS]

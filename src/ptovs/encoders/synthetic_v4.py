@@ -53,12 +53,17 @@ PROJECTION_SHA256 = "3c86f5fd2ffcf659eea60d58633814836fa94c5343c4241e71f6a3be28f
 @functools.lru_cache(maxsize=1)
 def projection() -> dict[str, np.ndarray]:
     """The shipped invariance projection: mean [N], directions [N, K], scale."""
-    blob = resources.files("ptovs.encoders").joinpath(PROJECTION_FILE).read_bytes()
+    return load_projection(PROJECTION_FILE, PROJECTION_SHA256)
+
+
+def load_projection(name: str, sha256: str) -> dict[str, np.ndarray]:
+    """A shipped projection file of this package, verified by its SHA-256."""
+    blob = resources.files("ptovs.encoders").joinpath(name).read_bytes()
     digest = hashlib.sha256(blob).hexdigest()
-    if digest != PROJECTION_SHA256:
+    if digest != sha256:
         raise RuntimeError(
-            f"ptovs/encoders/{PROJECTION_FILE} is damaged or not the shipped one "
-            f"(sha256 {digest[:12]}..., expected {PROJECTION_SHA256[:12]}...); "
+            f"ptovs/encoders/{name} is damaged or not the shipped one "
+            f"(sha256 {digest[:12]}..., expected {sha256[:12]}...); "
             "reinstall ptovs or rerun tools/fit_standin_v4.py"
         )
     import io
@@ -68,7 +73,7 @@ def projection() -> dict[str, np.ndarray]:
     if out["directions"].shape != (v2.N_FEATURES, K) or out["mean"].shape != (
         v2.N_FEATURES,
     ):
-        raise RuntimeError(f"{PROJECTION_FILE}: unexpected shapes")
+        raise RuntimeError(f"{name}: unexpected shapes")
     return out
 
 
@@ -77,11 +82,26 @@ def _to_512() -> np.ndarray:
     return np.random.default_rng(v2.SEED + 11).standard_normal((K, v2.DIM))
 
 
-def perturbation_size(raw: np.ndarray, keys, params: dict | None = None) -> np.ndarray:
+def faintness(raw: np.ndarray, params: dict) -> np.ndarray:
+    """How much contrast a crop lacks, >= 0 per crop (version 5; 0 without `k4`):
+    `k4` x log2(`t4` / R), R the 5-95 % luminance range of the part's core (the
+    "lum" group's second statistic under version 5's robust statistics, at least
+    one 8-bit grey level). CLIP's accuracy falls off below about 5 % contrast;
+    here the crop's keyed perturbation grows as its range falls below `t4`."""
+    if not params.get("k4"):
+        return np.zeros(len(raw))
+    r = np.maximum(raw[:, v2._offset("lum") + 1], 1.0 / 255.0)
+    return params["k4"] * np.maximum(np.log2(params["t4"] / r), 0.0)
+
+
+def perturbation_size(
+    raw: np.ndarray, keys, params: dict | None = None, stats: dict | None = None
+) -> np.ndarray:
     """Each crop's perturbation size, relative to the projected features' scale:
-    version 2's, plus `flip_size` for the keyed share `flip` of crops."""
+    version 2's (plus `faintness`), plus `flip_size` for the keyed share `flip`
+    of crops. `stats`: the options of version 2's statistics (None: shipped)."""
     p = PARAMS if params is None else params
-    amp = p["noise"] * (1.0 + v2.distortion(raw))
+    amp = p["noise"] * (1.0 + v2.distortion(raw, stats) + faintness(raw, p))
     hit = np.array(
         [np.random.default_rng([int(k), 1]).random() < p["flip"] for k in keys], bool
     )
@@ -95,11 +115,15 @@ def content(crops: np.ndarray, params: dict | None = None) -> np.ndarray:
     return content_from(raw, keys, params)
 
 
-def content_from(raw: np.ndarray, keys, params: dict | None = None) -> np.ndarray:
-    """`content` from version 2's statistics and the crops' keys."""
-    proj = projection()
-    z, _ = v2.standardised(raw)
-    amp = perturbation_size(raw, keys, params)
+def content_from(
+    raw: np.ndarray, keys, params: dict | None = None,
+    proj: dict | None = None, stats: dict | None = None,
+) -> np.ndarray:  # fmt: skip
+    """`content` from version 2's statistics and the crops' keys (`proj`, `stats`:
+    another version's projection and statistics' options; None: version 4's)."""
+    proj = projection() if proj is None else proj
+    z, _ = v2.standardised(raw, stats)
+    amp = perturbation_size(raw, keys, params, stats)
     P = _to_512()
     out = np.zeros((len(z), v2.DIM))
     for b in range(len(z)):  # row by row: a crop's vector never depends on its batch
@@ -141,10 +165,13 @@ def bank_lights() -> list:
     return out
 
 
-def bank_statistics(seeds, progress=None) -> tuple[np.ndarray, np.ndarray]:
-    """Version 2's statistics [n, N] of the parts of the worlds of `seeds`
-    (preset small, version 3's worlds) as segment crops, 12 azimuths x 7 lights,
-    and their class [n] (one per world and part)."""
+def bank_statistics(
+    seeds, progress=None, stats: dict | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Version 2's statistics [n, N] (with the options `stats`; None: shipped)
+    of the parts of the worlds of `seeds` (preset small, version 3's worlds) as
+    segment crops, 12 azimuths x 7 lights, and their class [n] (one per world and
+    part)."""
     from ptovs.crop import prepare_crop
     from ptovs.synthetic.generate import plan_scene
     from ptovs.synthetic.world import render
@@ -165,7 +192,7 @@ def bank_statistics(seeds, progress=None) -> tuple[np.ndarray, np.ndarray]:
                     if m.sum() >= 64:
                         crops.append(prepare_crop(img, m))
                         lab.append(c0 + j)
-        raws.append(v2.raw_features(np.stack(crops)))
+        raws.append(v2.raw_features(np.stack(crops), stats))
         cls += lab
         c0 += len(ids)
         if progress is not None:
@@ -175,7 +202,7 @@ def bank_statistics(seeds, progress=None) -> tuple[np.ndarray, np.ndarray]:
 
 def fisher(
     raw: np.ndarray, cls: np.ndarray, k: int = K, ridge: float = 1e-3,
-    z: np.ndarray | None = None,
+    z: np.ndarray | None = None, stats: dict | None = None,
 ):  # fmt: skip
     """The k directions of the standardised statistics that best separate the
     classes against their within-class spread (within-class covariance whitened
@@ -183,7 +210,7 @@ def fisher(
     of the projected, centred rows, and the k eigenvalues. `z`, if given, stands
     for the standardised statistics of `raw` (a probe's variant of them)."""
     if z is None:
-        z, _ = v2.standardised(raw)
+        z, _ = v2.standardised(raw, stats)
     mu = z.mean(0)
     n = z.shape[1]
     sw, sb = np.zeros((n, n)), np.zeros((n, n))

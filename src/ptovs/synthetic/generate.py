@@ -445,7 +445,7 @@ def scene_vocabulary(
 ) -> dict:
     """The stand-in encoder's vocabulary: phrase -> canonical swatch description.
 
-    `standin` 2, 3 and 4 (issue 41) add what those versions of the stand-in
+    `standin` 2 to 5 (issue 41) add what those versions of the stand-in
     render their text side from: the world ("world") and each part phrase's part
     ids ("parts")."""
     from ptovs.encoders.synthetic import generic_vocabulary
@@ -482,7 +482,7 @@ def scene_vocabulary(
         "phrases": phrases,
         "generic": generic_vocabulary(sky=phrases["sky"], ground=ground),
     }
-    if standin in (2, 3, 4):
+    if standin in (2, 3, 4, 5):
         parts: dict[str, list[int]] = {}
         for part in world.parts:
             parts.setdefault(part.query, []).append(part.id)
@@ -492,7 +492,7 @@ def scene_vocabulary(
                 parts.setdefault(name, []).append(part.id)
         out.update(version=standin, world=world.to_dict(), parts=parts)
     elif standin != 1:
-        raise ValueError(f"standin must be 1, 2, 3 or 4, got {standin!r}")
+        raise ValueError(f"standin must be 1, 2, 3, 4 or 5, got {standin!r}")
     return out
 
 
@@ -711,8 +711,8 @@ def plan_scene(preset: str, seed: int, standin: int = 1, extra: int = 0) -> Scen
         eval_cams,
         truths,
         labelled,
-        # version 4 reads version 3's worlds: the same screen, the same photos
-        lambda w: scene_vocabulary(w, cfg, [], 3 if standin == 4 else standin),
+        # versions 4 and 5 read version 3's worlds: the same screen, the same photos
+        lambda w: scene_vocabulary(w, cfg, [], 3 if standin in (4, 5) else standin),
         label_mask,
     )
     queries = {p.query: [p.id] for p in world.parts if verdict[p.id].answerable}
