@@ -62,7 +62,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # Gaussians, 2.5 %, at relevancy score 0.477 on 2026-11-26's machine)
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo view test system-deps test-slurm lint format bench bench-accuracy bench-upstream bench-standin bench-multiapp bench-multiapp-3x bench-multiapp-v3 bench-multiapp-truth bench-multiapp-v4 bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
+.PHONY: setup demo view test system-deps test-slurm lint format bench bench-accuracy bench-upstream bench-standin bench-multiapp bench-multiapp-3x bench-multiapp-v3 bench-multiapp-truth bench-multiapp-v4 bench-multiapp-v5 bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
 
 setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml
@@ -235,6 +235,18 @@ bench-multiapp-v4: setup
 	$(BIN)/python bench/accuracy.py --preset small --standin 4 --seeds $(MULTIAPPV4_SEEDS) --dev $(MULTIAPPV4_DEV) \
 	  --data $(QDATA)/accuracy-v4 --work $(QWORK)/accuracy-v4 \
 	  --labels $(MULTIAPPV4_LABELS) --base male-truth
+
+# issue 41, amendment 10: the same in stand-in 5's world (version 4 reading the part
+# inside its crop's dark rim), fresh seeds dev 220-228, test 229-246; the front end
+# first (MULTIAPPV5_LABELS="2d-truth 2d" MULTIAPPV5_SEEDS=220-228), then pass 1 (the
+# default), then Table 4 (MULTIAPPV5_LABELS="same-appearance-truth select-random-truth")
+MULTIAPPV5_LABELS ?= 2d-truth male-truth no-multi-appearance-truth langsplat-truth
+MULTIAPPV5_SEEDS ?= 220-246
+MULTIAPPV5_DEV ?= 220-228
+bench-multiapp-v5: setup
+	$(BIN)/python bench/accuracy.py --preset small --standin 5 --seeds $(MULTIAPPV5_SEEDS) --dev $(MULTIAPPV5_DEV) \
+	  --data $(QDATA)/accuracy-v5 --work $(QWORK)/accuracy-v5 \
+	  --labels $(MULTIAPPV5_LABELS) --base male-truth
 
 # how each stage's time, peak RSS and output quality grow with the collection (issue
 # 43 item 2): the landmark world at 100, 200, 400 and 763 photos, one size at a time,
