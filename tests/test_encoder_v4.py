@@ -42,19 +42,6 @@ def scene(monkeypatch_module):
     return plan, vocab, items
 
 
-def test_projection_is_verified_on_read(monkeypatch) -> None:
-    p = v4.projection()
-    assert p["directions"].shape == (v2.N_FEATURES, v4.K)
-    assert np.isfinite(p["directions"]).all() and p["scale"] > 0
-    v4.projection.cache_clear()
-    monkeypatch.setattr(v4, "PROJECTION_SHA256", "0" * 64)
-    try:
-        with pytest.raises(RuntimeError, match="standin_v4.npz is damaged"):
-            v4.projection()
-    finally:
-        v4.projection.cache_clear()
-
-
 def test_shapes_norms_determinism_and_degenerate_crops(scene) -> None:
     enc = v4.SyntheticEncoderV4(scene[1])
     crops = np.stack([c for _, c in scene[2][:5]])

@@ -27,17 +27,18 @@ def _striped_part(contrast: float, side: int = 40, seed: int = 0) -> np.ndarray:
     return prepare_crop(img, mask)
 
 
-def test_projection_is_verified_on_read(monkeypatch) -> None:
-    p = v5.projection()
-    assert p["directions"].shape == (v2.N_FEATURES, v5.K)
+@pytest.mark.parametrize("mod", [v4, v5], ids=["v4", "v5"])
+def test_projection_is_verified_on_read(monkeypatch, mod) -> None:
+    p = mod.projection()
+    assert p["directions"].shape == (v2.N_FEATURES, mod.K)
     assert np.isfinite(p["directions"]).all() and p["scale"] > 0
-    v5.projection.cache_clear()
-    monkeypatch.setattr(v5, "PROJECTION_SHA256", "0" * 64)
+    mod.projection.cache_clear()
+    monkeypatch.setattr(mod, "PROJECTION_SHA256", "0" * 64)
     try:
-        with pytest.raises(RuntimeError, match="standin_v5.npz is damaged"):
-            v5.projection()
+        with pytest.raises(RuntimeError, match=f"{mod.PROJECTION_FILE} is damaged"):
+            mod.projection()
     finally:
-        v5.projection.cache_clear()
+        mod.projection.cache_clear()
 
 
 def test_texture_statistics_ignore_contrast_unlike_version_4() -> None:
