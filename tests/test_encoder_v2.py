@@ -246,8 +246,8 @@ def test_version_3_is_dispatched_and_keyed(world_crops, tmp_path) -> None:
     (tmp_path / "synthetic" / "vocabulary.json").write_text(json.dumps(vocab))
     ref = SimpleNamespace(load=lambda: SimpleNamespace(root=tmp_path))
     assert standin_key(Config(), ref) == {"standin": "3"}
-    with pytest.raises(ValueError, match="1, 2, 3 or 4"):
-        scene_vocabulary(world, PRESETS[PRESET], [], 5)
+    with pytest.raises(ValueError, match="1, 2, 3, 4 or 5"):
+        scene_vocabulary(world, PRESETS[PRESET], [], 6)
 
 
 def test_screen_asks_only_to_beat_an_average_word() -> None:
