@@ -238,7 +238,7 @@ bench-multiapp-v4: setup
 
 # issue 41, amendment 10: the same in stand-in 5's world (version 4 reading the part
 # inside its crop's dark rim), fresh seeds dev 220-228, test 229-246; the front end
-# first (MULTIAPPV5_LABELS="2d-truth 2d" MULTIAPPV5_SEEDS=220-228), then pass 1 (the
+# first (MULTIAPPV5_LABELS=2d-truth MULTIAPPV5_SEEDS=220-228), then pass 1 (the
 # default), then Table 4 (MULTIAPPV5_LABELS="same-appearance-truth select-random-truth")
 MULTIAPPV5_LABELS ?= 2d-truth male-truth no-multi-appearance-truth langsplat-truth
 MULTIAPPV5_SEEDS ?= 220-246
