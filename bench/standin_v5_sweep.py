@@ -20,6 +20,8 @@ row are not scored here: the chosen constants are checked on every row with
 from __future__ import annotations
 
 import argparse
+import functools
+import hashlib
 import itertools
 import json
 import multiprocessing
@@ -47,8 +49,6 @@ PERTURBATION = ("t1", "t2", "k1", "k2", "t3", "k3", "c0", "noise")
 def _cache_path(seed: int, levels_only: bool) -> Path:
     """Per seed, keyed by the statistics' options and the shipped projection (a
     reduction is stale when either changes)."""
-    import hashlib
-
     key = json.dumps([sorted((k, v) for k, v in v5.STATS.items() if k not in PERTURBATION),
                       v5.PROJECTION_SHA256, levels_only])  # fmt: skip
     tag = hashlib.sha256(key.encode()).hexdigest()[:12]
@@ -155,7 +155,7 @@ def main(argv: list[str] | None = None) -> None:
         axes[name] = [float(v) for v in values.split(",")]
     t0 = time.perf_counter()
     seeds = seed_list(args.seeds)
-    job = reduce_seed if not args.levels_only else _reduce_levels
+    job = functools.partial(reduce_seed, levels_only=args.levels_only)
     if args.jobs > 1:
         with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:
             data = pool.map(job, seeds, chunksize=1)
@@ -180,10 +180,6 @@ def main(argv: list[str] | None = None) -> None:
     with atomic_file(args.out) as tmp:
         Path(tmp).write_text(json.dumps({"seeds": seeds, "grid": results}))
     print(f"done in {time.perf_counter() - t0:.0f} s; {args.out}")
-
-
-def _reduce_levels(seed: int) -> dict:
-    return reduce_seed(seed, levels_only=True)
 
 
 if __name__ == "__main__":
