@@ -482,6 +482,37 @@ def summarise_code(results: list[dict]) -> dict:
     }
 
 
+def view_interval(
+    results: list[dict], rows: tuple[str, ...], n_boot: int = 2000, seed: int = 0
+) -> list[float]:
+    """95 % bootstrap interval of the accuracy of `rows` (pooled) over clean's,
+    minus 1, resampling (seed, view) clusters: each view of a seed is one draw of
+    the appearance rows' light, so such a row is as precise as its number of
+    views, not of crops. Rows are [view, part, truth, prediction, ...]."""
+    recs = [
+        (res["seed"], r[0], name == "clean", r[2] == r[3])
+        for res in results
+        for name in ("clean", *rows)
+        for r in res["rows"].get(name, [])
+    ]
+    if not recs:
+        return [float("nan"), float("nan")]
+    t = np.array(recs, dtype=np.float64)
+    _, inv = np.unique(t[:, :2], axis=0, return_inverse=True)
+    inv = inv.ravel()
+    k = int(inv.max()) + 1
+    sums = [
+        np.bincount(inv[m], t[m, 3] if ok else None, k)
+        for m in (t[:, 2] == 1, t[:, 2] == 0)
+        for ok in (True, False)
+    ]  # clean right, clean crops, row right, row crops: per cluster
+    pick = np.random.default_rng(seed).integers(0, k, (n_boot, k))
+    c_ok, c_n, r_ok, r_n = (x[pick].sum(1) for x in sums)
+    acc_c = c_ok / np.maximum(c_n, 1)
+    ratio = r_ok / np.maximum(r_n, 1) / np.maximum(acc_c, 1e-12) - 1.0
+    return [float(np.percentile(ratio, 2.5)), float(np.percentile(ratio, 97.5))]
+
+
 def summarise(results: list[dict]) -> dict:
     """Accuracy per row, relative change against clean, shape bias, error lift."""
     acc: dict[str, dict] = {}
@@ -492,6 +523,8 @@ def summarise(results: list[dict]) -> dict:
         rs = [r for res in results for r in res["rows"].get(name, [])]
         a = float(np.mean([r[2] == r[3] for r in rs])) if rs else float("nan")
         acc[name] = {"n": len(rs), "accuracy": a, "relative": a / base - 1.0}
+        if rs and name != "clean":
+            acc[name]["relative_ci_views"] = view_interval(results, (name,))
         if name in LEVEL_ROWS and rs:  # the parts' own spread, and the contrast given
             r = np.array([x[4] for x in rs]) / 1e3
             c = [level_contrast(LEVEL_ROWS[name], v) for v in r]
@@ -526,6 +559,12 @@ def summarise(results: list[dict]) -> dict:
     if len(rel):
         out["relevancy_own"] = float(np.median(rel[:, 0]))
         out["relevancy_other"] = float(np.nanmedian(rel[:, 1]))
+    if "daylight" in acc and "daylight-b" in acc:  # both draws of ordinary light
+        both = acc["daylight"]["accuracy"] + acc["daylight-b"]["accuracy"]
+        out["daylight_both"] = {
+            "relative": both / 2 / base - 1.0,
+            "relative_ci_views": view_interval(results, ("daylight", "daylight-b")),
+        }
     code = summarise_code(results)
     if code:
         out["code"] = code
@@ -559,7 +598,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--levels-only", action="store_true",
                     help="only the clean crops and amendment 9's contrast rows, "
                     "with a sweep of milder contrasts")  # fmt: skip
+    ap.add_argument("--summarise", type=Path, metavar="JSON",
+                    help="re-read a saved profile (its crops' decisions) and print "
+                    "its summary again, with the intervals; nothing is measured")  # fmt: skip
     args = ap.parse_args(argv)
+    if args.summarise is not None:
+        saved = json.loads(args.summarise.read_text())
+        report({**summarise(saved["seeds"]), "version": saved["summary"]["version"]})
+        return
     t0 = time.perf_counter()
     seeds = seed_list(args.seeds)
     job = functools.partial(
@@ -578,13 +624,25 @@ def main(argv: list[str] | None = None) -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_file(args.out) as tmp:
         Path(tmp).write_text(json.dumps({"summary": summary, "seeds": results}))
-    print(f"clean accuracy {summary['clean_accuracy']:.3f}  shape bias "
+    report(summary)
+
+
+def report(summary: dict) -> None:
+    """Print a profile's summary: each row with its (seed, view)-cluster interval."""
+    print(f"version {summary['version']}  clean accuracy "
+          f"{summary['clean_accuracy']:.3f}  shape bias "
           f"{summary['shape_bias']:.2f}  error lift {summary['error_lift']:.2f}  "
           f"relevancy own {summary.get('relevancy_own', float('nan')):.3f} "
           f"other {summary.get('relevancy_other', float('nan')):.3f}")  # fmt: skip
     for name, r in summary["rows"].items():
+        lo, hi = r.get("relative_ci_views", (float("nan"),) * 2)
         print(f"  {name:22s} n={r['n']:4d}  acc {r['accuracy']:.3f}  "
-              f"{100 * r['relative']:+.0f} %")  # fmt: skip
+              f"{100 * r['relative']:+.1f} %  [{100 * lo:+.1f}, {100 * hi:+.1f}]")  # fmt: skip
+    if "daylight_both" in summary:
+        d = summary["daylight_both"]
+        lo, hi = d["relative_ci_views"]
+        print(f"  {'daylight, both draws':22s} {100 * d['relative']:+.1f} %  "
+              f"[{100 * lo:+.1f}, {100 * hi:+.1f}]")  # fmt: skip
     if "code" in summary:
         c = summary["code"]
         print(f"  scene code (3-d)       n={c['n']:4d}  acc {c['accuracy_raw']:.3f} -> "

@@ -169,3 +169,42 @@ def test_v2_rim_reads_inside_the_ring():
     assert base[1, 11] > 3 * base[0, 11]  # the ring dominates the spread ...
     assert rim[1, lum] == pytest.approx(rim[0, lum], rel=0.1)  # ... not inside it
     assert np.isfinite(rim).all()
+
+
+def _profile_rows(rng, n_views: int, n_parts: int, p_clean: float, p_row: float):
+    """Fake profile results: per seed, rows of [view, part, truth, prediction]."""
+    out = []
+    for seed in (300, 301):
+        rows = {"clean": [], "daylight": [], "daylight-b": []}
+        for v in range(n_views):
+            for k in range(n_parts):
+                for name, p in (
+                    ("clean", p_clean), ("daylight", p_row), ("daylight-b", p_row)
+                ):  # fmt: skip
+                    rows[name].append([v, k, k, k if rng.random() < p else -1])
+        out.append({"seed": seed, "rows": rows})
+    return out
+
+
+def test_view_interval_resamples_views(profile):
+    """The appearance rows' interval resamples (seed, view) clusters: it holds the
+    point, is exact where nothing varies, and narrows with more views."""
+    rng = np.random.default_rng(0)
+    same = _profile_rows(rng, 12, 4, 1.0, 1.0)
+    assert profile.view_interval(same, ("daylight",)) == [0.0, 0.0]
+    none = _profile_rows(rng, 12, 4, 1.0, 0.0)
+    assert profile.view_interval(none, ("daylight",)) == [-1.0, -1.0]
+    few = _profile_rows(rng, 8, 4, 0.8, 0.8)
+    many = _profile_rows(rng, 200, 4, 0.8, 0.8)
+    s = profile.summarise(many)
+    lo, hi = s["rows"]["daylight"]["relative_ci_views"]
+    assert lo <= s["rows"]["daylight"]["relative"] <= hi
+    assert -0.1 < lo < 0.0 < hi < 0.1
+    f_lo, f_hi = profile.view_interval(few, ("daylight",))
+    assert f_hi - f_lo > hi - lo
+    assert "relative_ci_views" not in s["rows"]["clean"]
+    both = s["daylight_both"]  # the two draws pooled: their mean, a narrower interval
+    a, b = (s["rows"][n]["relative"] for n in ("daylight", "daylight-b"))
+    assert both["relative"] == pytest.approx((a + b) / 2)
+    assert np.diff(both["relative_ci_views"])[0] < hi - lo
+    assert np.isnan(profile.view_interval([], ("daylight",))).all()  # nothing to read
