@@ -603,8 +603,13 @@ def main(argv: list[str] | None = None) -> None:
                     "its summary again, with the intervals; nothing is measured")  # fmt: skip
     args = ap.parse_args(argv)
     if args.summarise is not None:
-        saved = json.loads(args.summarise.read_text())
-        report({**summarise(saved["seeds"]), "version": saved["summary"]["version"]})
+        try:
+            saved = json.loads(args.summarise.read_text())
+            seeds, version = saved["seeds"], saved["summary"]["version"]
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            ap.error(f"--summarise {args.summarise}: not a saved profile ({e}); "
+                     "give the --out file of an earlier run")  # fmt: skip
+        report({**summarise(seeds), "version": version})
         return
     t0 = time.perf_counter()
     seeds = seed_list(args.seeds)

@@ -7,6 +7,7 @@ stay finite; the tool fails closed on a folder that is not there."""
 from __future__ import annotations
 
 import importlib.util
+import json
 import sys
 from pathlib import Path
 
@@ -208,3 +209,21 @@ def test_view_interval_resamples_views(profile):
     assert both["relative"] == pytest.approx((a + b) / 2)
     assert np.diff(both["relative_ci_views"])[0] < hi - lo
     assert np.isnan(profile.view_interval([], ("daylight",))).all()  # nothing to read
+
+
+def test_summarise_rereads_a_saved_profile(profile, tmp_path, capsys):
+    """--summarise prints a saved profile's rows with their intervals and measures
+    nothing; anything else fails naming the file."""
+    results = _profile_rows(np.random.default_rng(1), 30, 3, 0.8, 0.7)
+    saved = tmp_path / "profile.json"
+    saved.write_text(json.dumps({"summary": {"version": 5}, "seeds": results}))
+    profile.main(["--summarise", str(saved)])
+    out = capsys.readouterr().out
+    assert out.startswith("version 5  clean accuracy")
+    assert "daylight, both draws" in out and "daylight-b" in out
+    bad = tmp_path / "other.json"
+    bad.write_text('{"rows": []}')
+    for path in (bad, tmp_path / "missing.json"):
+        with pytest.raises(SystemExit):
+            profile.main(["--summarise", str(path)])
+        assert f"--summarise {path}: not a saved profile" in capsys.readouterr().err
