@@ -35,7 +35,9 @@ and the clean render is degraded as the published studies degrade images:
   res-64, res-32           the 224-px crop through 64 / 32 px (LR0.FM)
   noise-05, noise-20       uniform noise of width 0.05 / 0.20 on the crop
 
-Each row is top-1 accuracy and its change relative to clean on the same crops. Also:
+Each row is top-1 accuracy and its change relative to clean on the same crops,
+with a 95 % bootstrap interval over (seed, view) clusters (an appearance row draws
+one light per view; `--summarise FILE` reprints a saved run with them). Also:
 shape bias on the conflict crops (decisions for the part's own phrase over
 decisions for the phrase of the texture it wears), the view change (clean crops by
 the camera's azimuth from the landmark's front), and how independent the errors of
