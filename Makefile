@@ -58,18 +58,22 @@ SETUP     ?= setup
 PTOVS_BIN ?= $(BIN)/ptovs
 PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # the demo's text for select and roam (tiny, seed 0: its parts are a brick facade, a Doric
-# column, a tiled roof; with the default config "Doric Column" selects 607 of 24,444
-# Gaussians, 2.5 %, at relevancy score 0.477 on 2026-11-26's machine)
+# column, a tiled roof; what it selects is in docs/results.md, "The demo")
 DEMO_TEXT ?= Doric Column
 
 .PHONY: setup demo view test system-deps test-slurm lint format bench bench-accuracy bench-upstream bench-standin bench-multiapp bench-multiapp-3x bench-multiapp-v3 bench-multiapp-truth bench-multiapp-v4 bench-multiapp-v5 bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
 
+# where torch and torchvision come from: PyTorch's CPU index by default (PyPI's Linux
+# torch is the CUDA build, several GB); with an NVIDIA GPU give its CUDA index, e.g.
+# TORCH_INDEX=https://download.pytorch.org/whl/cu130; empty, pip's own configuration decides
+TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
+TORCH_FROM   = $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX))
 setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q torch==2.13.0        # the CPU wheel; never an unpinned torch
-	$(BIN)/pip install -q torchvision==0.28.0  # matches torch 2.13 (for the extras)
+	$(BIN)/pip install -q torch==2.13.0 $(TORCH_FROM)        # never an unpinned torch
+	$(BIN)/pip install -q torchvision==0.28.0 $(TORCH_FROM)  # matches torch 2.13 (for the extras)
 	$(BIN)/pip install -q -e '.[dev,clip,sam,view,cluster]'  # the extras' tests run in CI
 	$(BIN)/pip install -q --no-deps viser==1.0.0  # see pyproject's [view] extra
 	touch $@
