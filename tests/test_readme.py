@@ -1,5 +1,5 @@
-"""Every `ptovs` command in the README's command blocks is one a user can run as
-written (issue 42): the command and its options exist, its `--set` items name real
+"""Every `ptovs` command in the command blocks of the README and docs/guide.md is
+one a user can run as written: the command and its options exist, its `--set` items name real
 sections and keys with values of the right type, and on the synthetic scenes it
 names (`data/bench_s1`, ...) its phrases, views and style candidates exist. The
 scenes are planned, not rendered (`plan_scene`: the same world, cameras and
@@ -29,7 +29,7 @@ from ptovs.stage import check_config
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 sys.path.insert(0, str(ROOT / "tools"))
-from check_readme import BLOCKS, as_written, readme_lines  # noqa: E402  (make check-readme's)
+from check_readme import BLOCKS, DOCS, as_written, readme_lines  # noqa: E402  (make check-readme's)
 
 
 def readme_commands() -> list[list[str]]:
@@ -46,7 +46,7 @@ def readme_make_lines() -> list[list[str]]:
     """The argv of each `make` in the README's ```bash blocks (`a && b`: both);
     lines naming a path the user supplies (/path/to, /cluster) are templates."""
     out = []
-    for block in BLOCKS.findall(README.read_text()):
+    for block in [b for page in DOCS for b in BLOCKS.findall(page.read_text())]:
         for line in block.replace("\\\n", " ").splitlines():
             if "/path/to" in line or "/cluster" in line:
                 continue

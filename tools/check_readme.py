@@ -1,8 +1,8 @@
-"""Run the README's commands as written (issue 42): `make check-readme`.
+"""Run the commands of the README and the guide as written: `make check-readme`.
 
     python tools/check_readme.py [--root work/readme] [--keep-going]
 
-Every `ptovs` line of the README's ```bash blocks that names a synthetic scene
+Every `ptovs` line of the ```bash blocks of README.md and docs/guide.md that names a synthetic scene
 (`data/bench_s1`, `data/tiny_s0`, ...) runs as written, one after the other, in
 a folder of its own (`--root`): the README's own `ptovs synth-scene data ...` lines
 make the scenes there, `configs/` is the repository's. `[...]` marks an optional
@@ -30,15 +30,18 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
+GUIDE = ROOT / "docs" / "guide.md"
+DOCS = (README, GUIDE)  # the pages whose commands a user copies
 SYNTHETIC = re.compile(r"\bdata/(tiny|small|bench)_s\d+\b|\bsynth-scene data\b")
 TEMPLATE = re.compile(r"<[a-z]+>|\bNAME\b|\bDIR\b|\bIMAGE\b|key=value")
-BLOCKS = re.compile(r"```bash\n(.*?)```", re.S)  # the README's command blocks
+BLOCKS = re.compile(r"```bash\n(.*?)```", re.S)  # a page's command blocks
 
 
 def readme_lines() -> list[str]:
-    """Each `ptovs` command line of the README's bash blocks, comments removed."""
+    """Each `ptovs` command line of the docs' bash blocks, comments removed."""
     out = []
-    for block in BLOCKS.findall(README.read_text()):
+    blocks = [b for page in DOCS for b in BLOCKS.findall(page.read_text())]
+    for block in blocks:
         for line in block.replace("\\\n", " ").splitlines():
             words = shlex.split(line, comments=True)
             if words and words[0] == "ptovs":
