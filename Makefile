@@ -2,8 +2,9 @@
 #   make demo          fresh machine → venv, tiny synthetic scene, every stage, masks, metrics, a PLY
 #   make view          after make demo: roam the demo scene and ask it things in the browser (open the printed URL)
 #   make test          the test suite (what CI runs)
+#   make bench         the rasterizer, each stage on bench scenes, the real photo sets,
+#                      then bench-growth (and bench-peers given OPENSPLAT_SRC)
 #   make bench-accuracy  the accuracy instrument: 18 seeds, every variant, CIs (~2 h)
-#   make bench-upstream  issue 40's one-off comparisons (segmenters; old and truth front ends)
 #   make bench-standin   the stand-in's failure profile against CLIP's (calibration seeds)
 #   make bench-multiapp  the paper's multi-appearance claim in stand-in 2's world (fresh seeds)
 #   make bench-multiapp-3x  the same at stand-in 2's calibration photo size (3x small)
@@ -61,7 +62,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # column, a tiled roof; what it selects is in docs/results.md, "The demo")
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo view test system-deps test-slurm lint format bench bench-accuracy bench-upstream bench-standin bench-multiapp bench-multiapp-3x bench-multiapp-v3 bench-multiapp-truth bench-multiapp-v4 bench-multiapp-v5 bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
+.PHONY: setup demo view test system-deps test-slurm lint format bench bench-accuracy bench-standin bench-multiapp bench-multiapp-3x bench-multiapp-v3 bench-multiapp-truth bench-multiapp-v4 bench-multiapp-v5 bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
 
 # where torch and torchvision come from: PyTorch's CPU index by default (PyPI's Linux
 # torch is the CUDA build, several GB); with an NVIDIA GPU give its CUDA index, e.g.
@@ -117,60 +118,37 @@ lint: setup
 format: setup
 	$(BIN)/ruff format . && $(BIN)/ruff check --fix .
 
+# the rasterizer; reconstruct, extract, train and query on bench seeds (scenes under
+# DATA, work under WORK/bench); the real photo sets (REAL) and their pictures
 bench: setup
 	$(BIN)/python bench/raster.py
-	$(BIN)/python bench/synth_timing.py
 	$(BIN)/python bench/encoder_calibration.py --seeds 0 1 2 --out $(QWORK)/synthetic
-	$(BIN)/python bench/screen.py --seeds 50
 	$(BIN)/python bench/reconstruct.py --seeds 0 1 2 --data $(QDATA) --work $(QWORK)/bench
 	$(BIN)/python bench/extract.py --seeds 0 1 2 --data $(QDATA) --work $(QWORK)/bench
 	$(BIN)/python bench/train.py --seeds 0 1 2 --data $(QDATA) --work $(QWORK)/bench
 	$(BIN)/python bench/query.py --seeds 0 --data $(QDATA) --work $(QWORK)/bench
-	$(BIN)/python bench/style_instrument.py --preset bench --seeds 12 --out $(QWORK)/bench/style_instrument.json
-	$(BIN)/python bench/style_instrument.py --preset tiny --seeds 30 --out $(QWORK)/bench/style_instrument.json
-	$(BIN)/python bench/apps.py --seeds 0 1 2 --data $(QDATA) --work $(QWORK)/bench
-	$(BIN)/python bench/cluster.py --parts make local slurm stages --work $(QWORK)/cluster
-	$(BIN)/python bench/sam_cpu.py --out $(QWORK)/sam_cpu.json
+	$(BIN)/python bench/real.py --real $(REAL) --work $(QWORK)/real
+	$(BIN)/python bench/real.py --real $(REAL) --work $(QWORK)/real --sets fountain_p11 --megapixels 12
 	$(BIN)/python bench/segment_pictures.py $(REAL)/herzjesu_p8/images/0004.jpg --out docs/img/segments_herzjesu.jpg
 	$(BIN)/python bench/segment_pictures.py $(REAL)/fountain_p11/images/0005.jpg --out docs/img/segments_fountain.jpg
-	$(BIN)/python bench/busy.py --work $(QWORK)/busy
-	$(BIN)/python bench/busy.py --work $(QWORK)/busy --competitors 2
-	$(BIN)/python bench/omp_steps.py --data $(QDATA) --work $(QWORK)/omp_steps
-	$(BIN)/python bench/real.py --work $(QWORK)/real
-	$(BIN)/python bench/real.py --work $(QWORK)/real --sets fountain_p11 --megapixels 12
-	$(BIN)/python bench/sfm.py --seeds 0 1 2 --data $(QDATA) --work $(QWORK)/sfm --variants \
-		repeat_threshold=0+pixel_scale=1+min_num_matches=15+min_pose_inliers=30 default
-	$(BIN)/python bench/real.py --work $(QWORK)/real --sfm-only \
-		repeat_threshold=0+pixel_scale=1+min_num_matches=15+min_pose_inliers=30 default
-	$(BIN)/python bench/reconstruct.py --parts variants --seeds 0 --data $(QDATA) --work $(QWORK)/knee \
-		--variant cap12k:max_gaussians=12000 --variant cap17k:max_gaussians=17000
-	$(BIN)/python bench/reconstruct.py --parts variants --seeds 1 2 --data $(QDATA) --work $(QWORK)/knee \
-		--variant rule2700:gaussians_per_mpx=2700
-	$(BIN)/python bench/real.py --work $(QWORK)/real --sets herzjesu_p8 --set reconstruct.gaussians_per_mpx=2700
-	$(BIN)/python bench/reconstruct.py --parts variants --seeds 0 1 2 --data $(QDATA) --work $(QWORK)/appearance \
-		--variant delta:appearance=delta-sh,color_map=false --variant shading:appearance=shading,color_map=false
-	$(BIN)/python bench/reconstruct.py --parts photos --seeds 0 --data $(QDATA) --work $(QWORK)/appearance \
-		--artifact "0:$$(ls $(QWORK)/appearance/variants/delta/bench_s0/reconstruct/*.h5 | head -1)"
-	$(BIN)/python bench/threads.py --preset small --seed 0 --threads 1 2 \
-		--set reconstruct.iterations=500 --work $(QWORK)/threads
-	$(BIN)/python bench/openclip_cpu.py --real $(REAL) --photos 3 --threads 1 2 --batch 1 16 64 \
-		--repeats 3 --out $(QWORK)/openclip_cpu.json
 	$(MAKE) bench-growth
 	@if [ -n "$(OPENSPLAT_SRC)" ]; then $(MAKE) bench-peers; else \
 	  echo "bench-peers not run: give OPENSPLAT_SRC=DIR (a clone of pierotofy/OpenSplat)"; fi
 
-# reconstruct beside OpenSplat on the CPU (issue 44): OpenSplat is built from the
-# source tree you give, never vendored (AGPL-3.0); OPENSPLAT_DEPS=DIR holds its CMake
-# downloads (nlohmann_json, nanoflann, cxxopts) for a machine without a network.
-# Needs OpenCV's C++ headers (Debian: apt install libopencv-dev) and a compiler.
+# reconstruct beside OpenSplat on the CPU, PEERS_ITERATIONS steps each, then ptovs's
+# time to OpenSplat's best held-out PSNR: OpenSplat is built from the source tree you
+# give, never vendored (AGPL-3.0); OPENSPLAT_DEPS=DIR holds its CMake downloads
+# (nlohmann_json, nanoflann, cxxopts) for a machine without a network. Needs OpenCV's
+# C++ headers (Debian: apt install libopencv-dev) and a compiler.
 OPENSPLAT_SRC  ?=
 OPENSPLAT_DEPS ?=
+PEERS_ITERATIONS ?= 500
 bench-peers: setup
 	@test -n "$(OPENSPLAT_SRC)" || { echo "bench-peers: give OPENSPLAT_SRC=DIR, a clone \
 	of https://github.com/pierotofy/OpenSplat"; exit 2; }
 	$(BIN)/python bench/peers.py --opensplat-src $(call q,$(OPENSPLAT_SRC)) \
 	  $(if $(OPENSPLAT_DEPS),--fetchcontent $(call q,$(OPENSPLAT_DEPS))) \
-	  --real $(REAL) --work $(QWORK)/peers
+	  --real $(REAL) --work $(QWORK)/peers --iterations $(PEERS_ITERATIONS)
 
 # the accuracy instrument (issue 20): ACC_SEEDS seeds of the `small` preset, every
 # variant, ceilings, cluster-bootstrap CIs; dev = the first half of the seeds, test
@@ -252,27 +230,13 @@ bench-multiapp-v5: setup
 	  --data $(QDATA)/accuracy-v5 --work $(QWORK)/accuracy-v5 \
 	  --labels $(MULTIAPPV5_LABELS) --base male-truth
 
-# how each stage's time, peak RSS and output quality grow with the collection (issue
-# 43 item 2): the landmark world at 100, 200, 400 and 763 photos, one size at a time,
-# the default chain on 2 threads; scenes under $(WORK)/growth/data, results in
-# $(WORK)/growth/growth.json, the plot beside it (published under docs/img with the figures);
-# then train-male's peak at 763 and 2,934 photos' Gaussians on the 100-photo chain
-# (bench/male_probe.py: the 2,934-photo chain itself is about 5 h)
+# how each stage's time, peak RSS and output quality grow with the collection: the
+# landmark world at 100, 200, 400 and 763 photos, one size at a time, the default
+# chain on 2 threads (about 3 h); scenes under $(WORK)/growth/data, results in
+# $(WORK)/growth/growth.json, the plot beside it
 bench-growth: setup
 	$(BIN)/python bench/growth.py --preset landmark --seed 0 --photos 100 200 400 763 \
 	  --threads 2 --work $(QWORK)/growth --plot
-	$(BIN)/python bench/male_probe.py --work $(QWORK)/growth/landmark_s0_p100 \
-	  --data $(QWORK)/growth/data/landmark_s0_p100 --gaussians 0 42263 153217
-
-# the one-off comparisons of issue 40, on the instrument's scenes and cache: the
-# segmenter sweep on dev and the three segmenters on test; the old front end and
-# Table 3 rows under truth segments on test
-bench-upstream: setup
-	$(BIN)/python bench/segments.py --seeds 0-8 --candidates sweep --data $(QDATA)/accuracy --work $(QWORK)/accuracy
-	$(BIN)/python bench/segments.py --seeds 9-17 --candidates graph hier truth --data $(QDATA)/accuracy --work $(QWORK)/accuracy
-	$(BIN)/python bench/accuracy.py --preset small --seeds 9-17 --dev 0-8 \
-	  --data $(QDATA)/accuracy --work $(QWORK)/accuracy --labels male 2d 2d-old male-old \
-	  langsplat no-multi-appearance male-truth langsplat-truth no-multi-appearance-truth
 
 # threads per scene job: the cores shared among make's parallel jobs (-jN; a bare -j
 # counts as one job per core), at least one. OpenMP teams on oversubscribed cores

@@ -1,5 +1,6 @@
 """What the bench scripts share: the repository root, the bench scenes, `ptovs` in a
-fresh process, and the results file every script keeps.
+fresh process, the results file every script keeps, camera pose errors, a chain's
+stages run one process each (bench/growth.py), and the raw-encoder style vote.
 
     from common import ROOT, Results, bench_scene, run_ptovs   # (bench/ is on sys.path)
     from common import seed_list                                 # "0-17" "20" -> seeds
@@ -11,11 +12,16 @@ import argparse
 import json
 import os
 import platform
+import shlex
 import shutil
+import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
+
+from ptovs.pipeline import PIPELINE  # stdlib only: torch stays out
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -106,7 +112,7 @@ def seed_list(items: list[str]) -> list[int]:
 
 def probe_parser(doc: str, preset: str) -> argparse.ArgumentParser:
     """The arguments of the dev diagnostics that read the instrument's scenes and
-    artifacts (bench/level_probe.py, bench/ae_probe.py); `--seeds` takes ranges."""
+    artifacts (bench/level_probe.py); `--seeds` takes ranges."""
     ap = argparse.ArgumentParser(description=doc.split("\n")[0])
     ap.add_argument("--data", type=Path, required=True)
     ap.add_argument("--work", type=Path, required=True)
@@ -126,17 +132,6 @@ def instrument_chain(scene: Path, work: Path, config: Path, variant: str = "male
 
     ctx = RunContext(work / "runs", load_config(config))
     return Chain(ctx, resolve_scene(ctx, None, scene), variant_sets(variant))
-
-
-OMP_SETTINGS = {
-    "spin": {"OMP_WAIT_POLICY": "ACTIVE"},
-    "gomp": {"GOMP_SPINCOUNT": "300000"},
-    "passive": {"OMP_WAIT_POLICY": "PASSIVE"},
-    "spin1k": {"GOMP_SPINCOUNT": "1000"},
-    "spin3k": {"GOMP_SPINCOUNT": "3000"},
-    "spin10k": {"GOMP_SPINCOUNT": "10000"},
-}
-"""OpenMP wait settings the busy-machine benchmarks compare (environment overrides)."""
 
 
 def camera_pose(cam_from_world) -> tuple:
@@ -196,3 +191,218 @@ def print_header(*columns: str) -> None:
     """A markdown table's header and rule line."""
     print("| " + " | ".join(columns) + " |")
     print("|" + "---|" * len(columns), flush=True)
+
+
+# ------------------------------------------- a chain's stages, each its own process
+
+SECTIONS = ("scene", *PIPELINE)  # what a --set item may name
+PRESETS = ("tiny", "small", "bench", "landmark", "scale")  # synth-scene's
+SAME_MACHINE = ("cpu_model", "cpu_count")  # an earlier run is kept on the same CPU
+
+
+def cpu_model() -> str:
+    """The CPU's model name from /proc/cpuinfo ("" where there is none)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.lower().startswith(("model name", "hardware", "cpu model")):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return ""
+
+
+def machine_facts() -> dict:
+    """The machine, and torch's own thread defaults (asked in a fresh process without
+    the OpenMP settings, so this process never loads torch)."""
+    facts = machine()
+    facts.update(
+        cpu_count=os.cpu_count(),
+        affinity=len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        processor=platform.processor(),
+        cpu_model=cpu_model(),
+        python=platform.python_version(),
+        omp_env={k: os.environ[k] for k in sorted(os.environ)
+                 if k.startswith(("OMP_", "GOMP_", "MKL_", "PTOVS_THREADS"))},
+    )  # fmt: skip
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "PTOVS_THREADS")}  # fmt: skip
+    probe = (
+        "import json, torch; print(json.dumps(dict(torch=torch.__version__, "
+        "torch_threads=torch.get_num_threads(), "
+        "torch_interop_threads=torch.get_num_interop_threads())))"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True,
+                         text=True)  # fmt: skip
+    if out.returncode == 0:
+        facts.update(json.loads(out.stdout.strip().splitlines()[-1]))
+    else:
+        facts["torch_error"] = out.stderr[-1000:]
+    git = subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty"],
+                         capture_output=True, text=True)  # fmt: skip
+    facts["commit"] = git.stdout.strip()
+    return facts
+
+
+def stage_command(args: argparse.Namespace, work: Path, scene: Path, n: int,
+                  stage: str) -> list[str]:  # fmt: skip
+    """`make all`'s command for one stage of the scene, on `n` threads."""
+    cmd = [sys.executable, "-m", "ptovs", "--work-dir", str(work),
+           "--config", str(args.config), "-q", "--threads", str(n)]  # fmt: skip
+    cmd += [f"--set={s}" for s in args.set]
+    return [*cmd, stage, "--scene", scene.name, "--data", str(scene)]
+
+
+def _kill_group(pid: int, killed: threading.Event) -> None:
+    killed.set()
+    try:
+        os.killpg(pid, signal.SIGKILL)
+    except ProcessLookupError:  # ended meanwhile
+        pass
+
+
+def run_stage(cmd: list[str], env: dict, logs: Path, stage: str,
+              budget: float | None) -> dict:  # fmt: skip
+    """One stage in its own process: wall s, its peak RSS (its own rusage from
+    wait4), exit status, stderr's tail on failure. Killed (with what it started)
+    after `budget` s."""
+    out, err = logs / f"{stage}.out", logs / f"{stage}.err"
+    with out.open("w") as fo, err.open("w") as fe:
+        load0 = os.getloadavg()[0]
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, env=env, stdout=fo, stderr=fe,
+                                start_new_session=True)  # fmt: skip
+        timer, killed = None, threading.Event()
+        if budget is not None:
+            timer = threading.Timer(budget, _kill_group, (proc.pid, killed))
+            timer.daemon = True
+            timer.start()
+        try:
+            _, status, usage = os.wait4(proc.pid, 0)
+        finally:
+            if timer is not None:
+                timer.cancel()
+        wall = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here, not by Popen
+    # its CPU seconds and the machine's 1-min load average before and after: a
+    # stage that shared the machine shows a load above its threads
+    res = {"wall_s": round(wall, 2), "peak_rss_mb": round(usage.ru_maxrss / 1024, 1),
+           "cpu_s": round(usage.ru_utime + usage.ru_stime, 1),
+           "load": [round(load0, 2), round(os.getloadavg()[0], 2)],
+           "exit": proc.returncode, "cmd": shlex.join(cmd)}  # fmt: skip
+    if proc.returncode != 0:
+        if killed.is_set():
+            res["timeout"] = True
+        res["stderr_tail"] = err.read_text(errors="replace")[-3000:]
+    return res
+
+
+def ok(rec: dict | None) -> bool:
+    return bool(rec) and rec.get("exit") == 0
+
+
+def fmt_s(rec: dict | None) -> str:
+    if rec is None or "skipped" in rec:
+        return "–"
+    if rec.get("exit") != 0:
+        return "timeout" if rec.get("timeout") else f"failed ({rec.get('exit')})"
+    return f"{rec['wall_s']:.1f}"
+
+
+def report_stage(label: str, stage: str, rec: dict, extra: str = "") -> str:
+    """Print a stage's line (and the tail of its stderr when it failed); returns
+    why the chain stops there ("" when it went on)."""
+    print(f"{label}  {stage:<20} {fmt_s(rec):>12}{' s' if ok(rec) else ''}"
+          f"  {rec['peak_rss_mb']:7.0f} MB{extra}", file=sys.stderr, flush=True)  # fmt: skip
+    if rec["exit"] == 0:
+        return ""
+    print(rec["stderr_tail"][-1500:], file=sys.stderr)
+    return "the --timeout budget ran out" if rec.get("timeout") else f"{stage} failed"
+
+
+def add_run_options(p: argparse.ArgumentParser, what: str = "scene") -> None:
+    """The options a chain benchmark takes (bench/growth.py)."""
+    p.add_argument("--data", type=Path, default=None,
+                   help=f"where the {what} generated (default <work>/data)")  # fmt: skip
+    p.add_argument("--config", type=Path, default=ROOT / "configs" / "default.toml",
+                   help="the --config every stage gets (make all's default)")  # fmt: skip
+    p.add_argument("--set", action="append", default=[], metavar="STAGE.KEY=VALUE",
+                   help="passed to every stage's command (repeatable)")  # fmt: skip
+    p.add_argument("--timeout", type=float, default=None,
+                   help="wall budget of the whole run, s: the rest is skipped")  # fmt: skip
+
+
+def check_run_options(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse a malformed --set item; make the paths absolute."""
+    for item in args.set:
+        section, dot, _ = item.partition("=")[0].partition(".")
+        if "=" not in item or not dot or section not in SECTIONS:
+            p.error(f"--set {item!r}: write STAGE.KEY=VALUE, STAGE one of "
+                    + ", ".join(SECTIONS))  # fmt: skip
+    args.work = args.work.resolve()
+    args.data = (args.data or args.work / "data").resolve()
+    args.config = args.config.resolve()
+
+
+def earlier_runs(
+    path: Path, results: dict, same: tuple[str, ...], old: dict | None = None
+) -> dict | None:
+    """An earlier results file at `path` (or its content `old`, already read), when
+    it measured the same setup (`same` keys of `results`) on the same CPU; else None."""
+    if old is None:
+        if not path.exists():
+            return None
+        old = json.loads(path.read_text())
+    if all(old.get(k) == results[k] for k in same) and all(
+        old.get("machine", {}).get(k) == results["machine"][k] for k in SAME_MACHINE
+    ):
+        return old
+    return None
+
+
+def write_results(path: Path, results: dict) -> None:
+    from ptovs.atomic import atomic_file
+
+    with atomic_file(path, keep_suffix=False) as tmp:
+        tmp.write_text(json.dumps(results, indent=1))
+
+
+def thread_env(n: int) -> dict:
+    """The stages' environment at `n` threads (OpenMP's count; --threads sets torch's)."""
+    env = {k: v for k, v in os.environ.items() if k != "PTOVS_THREADS"}
+    env["OMP_NUM_THREADS"] = str(n)
+    return env
+
+
+# ---------------------------------------------------------------- style
+
+
+def raw_style_votes(scene: Path, names: list[str]) -> dict:
+    """The authors' raw-CLIP baseline with the stand-in encoder: each view's whole
+    photo (and, for reference, the landmark alone under its truth mask) votes for
+    the style text with the highest cosine."""
+    import cv2
+    import numpy as np
+
+    from ptovs.encoders import prepare_crop
+    from ptovs.encoders.synthetic import SyntheticEncoder
+
+    enc = SyntheticEncoder.from_scene(scene)
+    text = enc.encode_texts(enc.styles)
+    votes = {
+        "whole": dict.fromkeys(enc.styles, 0),
+        "landmark": dict.fromkeys(enc.styles, 0),
+    }
+    for name in names:
+        stem = Path(name).stem
+        img = (
+            cv2.imread(str(scene / "dense/images" / name))[..., ::-1].astype(np.float32)
+            / 255
+        )
+        part = np.load(scene / "synthetic/truth" / f"{stem}.npz")["part_id"]
+        crops = np.stack(
+            [prepare_crop(img, np.ones(part.shape, bool)), prepare_crop(img, part >= 0)]
+        )
+        best = (enc.encode_images(crops) @ text.T).argmax(1)
+        votes["whole"][enc.styles[best[0]]] += 1
+        votes["landmark"][enc.styles[best[1]]] += 1
+    return votes

@@ -1,21 +1,15 @@
-"""Benchmark render-appearances, extract-features and uncertainty (issue 9 targets).
+"""Benchmark render-appearances, extract-features and uncertainty on the bench preset.
 
-python bench/extract.py                       # bench seeds 0 1 2, graph timing, scale memory
-python bench/extract.py --parts bench --seeds 0
-python bench/extract.py --parts graph scale
+python bench/extract.py                       # bench seeds 0 1 2
+python bench/extract.py --seeds 0 --force     # recompute the three stages (timing)
 
-Parts:
-  bench  per seed, through the CLI: reconstruct (cached from bench/reconstruct.py's
-         work dir when present), then each stage in its own process: wall time and
-         peak RSS; the chosen appearances (ids, self-render L1, min pairwise L1);
-         each novel render against the world re-rendered with the target's
-         appearance and no occluders (PSNR), and the self render against the
-         world under the view's own appearance without occluders; stand-in
-         encoding time per image; AUROC of U_T (and U_A) against the true
-         transient masks of the train images
-  graph  graph segmentation at 3 levels on 512×384 images (mean of 10)
-  scale  the `scale` preset (3,000 views at 64×48) with a 200-iteration
-         reconstruct: wall time and peak RSS of each of the three stages
+Per seed, through the CLI: reconstruct (cached from bench/reconstruct.py's work dir
+when present), then each stage in its own process: wall time and peak RSS; the
+chosen appearances (ids, self-render L1, min pairwise L1); each novel render against
+the world re-rendered with the target's appearance and no occluders (PSNR), and the
+self render against the world under the view's own appearance without occluders;
+stand-in encoding time per image; AUROC of U_T (and U_A) against the true transient
+masks of the train images.
 
 Results go to <work>/bench_extract.json and are printed as markdown rows.
 """
@@ -23,9 +17,7 @@ Results go to <work>/bench_extract.json and are printed as markdown rows.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -132,38 +124,13 @@ def evaluate(res: dict, scene_dir: Path, n_views: int = 10) -> dict:
     return out
 
 
-def graph_timing(scene_dir: Path, n: int = 10) -> dict:
-    import cv2
-
-    from ptovs.segment import get_segmenter
-
-    seg = get_segmenter("graph")
-    files = sorted((scene_dir / "dense" / "images").glob("*.jpg"))[:n]
-    times, counts = [], []
-    for f in files:
-        img = cv2.cvtColor(cv2.imread(str(f)), cv2.COLOR_BGR2RGB)
-        img = cv2.resize(img, (512, 384), interpolation=cv2.INTER_AREA)
-        seg.segment(img)  # warm
-        t0 = time.perf_counter()
-        levels = seg.segment(img)
-        times.append(time.perf_counter() - t0)
-        counts.append([lv.n for lv in levels])
-    return {
-        "s_per_image": round(float(np.mean(times)), 4),
-        "max_s": round(float(np.max(times)), 4),
-        "segments_s_m_l": np.mean(counts, 0).round(1).tolist(),
-    }
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    ap.add_argument("--parts", nargs="+", default=["graph", "bench", "scale"])
     ap.add_argument("--data", type=Path, default=ROOT / "data")
     ap.add_argument("--work", type=Path, default=ROOT / "work" / "bench")
-    ap.add_argument("--scale-iterations", type=int, default=200)
     ap.add_argument(
         "--force", action="store_true", help="recompute the three stages (timing)"
     )
@@ -172,40 +139,20 @@ def main() -> None:
     results = Results(args.work / "bench_extract.json")
     save = results.save
 
-    if "graph" in args.parts:
-        results["graph"] = graph_timing(bench_scene(args.data, args.seeds[0]))
+    for seed in args.seeds:
+        scene = bench_scene(args.data, seed)
+        res = run_stages(args.work / "default", scene, [], args.force)
+        res.update(evaluate(res, scene))
+        results[f"bench_s{seed}"] = res
         save()
-        print("graph:", results["graph"], flush=True)
-    if "bench" in args.parts:
-        for seed in args.seeds:
-            scene = bench_scene(args.data, seed)
-            res = run_stages(args.work / "default", scene, [], args.force)
-            res.update(evaluate(res, scene))
-            results[f"bench_s{seed}"] = res
-            save()
-            t = " | ".join(
-                f"{res[s]['wall_s']} s / {res[s]['peak_rss_mb']} MB" for s in STAGES
-            )
-            print(
-                f"| {seed} | {t} | {res['ut_auroc']:.3f} | {res['ua_auroc']:.3f} | "
-                f"{res['render_psnr']} | {res['selection']['chosen']} |",
-                flush=True,
-            )
-    if "scale" in args.parts:
-        from ptovs.synthetic import generate_scene
-
-        scene = args.data / "scale_s0"
-        if not (scene / "dense").is_dir():
-            generate_scene(args.data, preset="scale", seed=0)
-        res = run_stages(
-            args.work / "scale",
-            scene,
-            [f"iterations={args.scale_iterations}", "checkpoint_every=100"],
-            args.force,
+        t = " | ".join(
+            f"{res[s]['wall_s']} s / {res[s]['peak_rss_mb']} MB" for s in STAGES
         )
-        results["scale_s0"] = res
-        save()
-        print("scale:", json.dumps(res), flush=True)
+        print(
+            f"| {seed} | {t} | {res['ut_auroc']:.3f} | {res['ua_auroc']:.3f} | "
+            f"{res['render_psnr']} | {res['selection']['chosen']} |",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""How every stage's time, memory and quality grow with the collection (issue 43 item 2).
+"""How every stage's time, memory and quality grow with the collection.
 
 The default chain on one world at 100, 200, 400 and 763 photos, one size at a time:
 
@@ -15,7 +15,7 @@ A size is N train photos of the preset's world (`ptovs synth-scene --preset P --
 smaller collection is a subset of a larger one); an item PRESET:N of --photos is that
 preset's only. The scene <preset>_s<seed>_p<N> is generated under --data (default
 <work>/data) when missing (its time and peak RSS recorded) and kept. Then, for each
-(preset, N) in turn (never two at once), bench/threads.py's run_stage runs every stage
+(preset, N) in turn (never two at once), bench/common.py's run_stage runs every stage
 of the chain (src/ptovs/pipeline.py's PIPELINE) in its own process, exactly as `make
 all` does, on --threads threads, in the work folder <work>/<scene> emptied first
 (nothing is cached from another size):
@@ -23,7 +23,7 @@ all` does, on --threads threads, in the work folder <work>/<scene> emptied first
     OMP_NUM_THREADS=T python -m ptovs --work-dir <work>/<scene> --config <config> -q \
         --threads T [--set STAGE.KEY=VALUE ...] <stage> --scene <scene> --data <scene dir>
 
-Per stage: wall s, peak RSS MB (os.wait4's ru_maxrss, see bench/threads.py), the
+Per stage: wall s, peak RSS MB (os.wait4's ru_maxrss of the stage's process), the
 thread count, the exit status, and its output's quality figure, read after the stage
 in a separate process (so this script stays small and its pages never count in a
 stage's peak RSS):
@@ -76,9 +76,9 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import ROOT  # noqa: E402  (same folder)
-from threads import (  # noqa: E402  (same folder)
+from common import (  # noqa: E402  (same folder)
     PRESETS,
+    ROOT,
     add_run_options,
     check_run_options,
     earlier_runs,
@@ -348,23 +348,15 @@ def run_size(args, results, save, preset: str, photos: int, env: dict,
 # ------------------------------------------------------------- fits and tables
 
 
-def fit_power(points: list[tuple[float, float]]) -> tuple[float, float] | None:
-    """(a, b) of y = a·x^b, least squares on log-log; None with fewer than 2
-    distinct x."""
+def fit_exponent(points: list[tuple[float, float]]) -> float | None:
+    """b of y = a·x^b, least squares on log-log; None with fewer than 2 distinct x."""
     pts = [(math.log(x), math.log(y)) for x, y in points if x > 0 and y > 0]
     if len({x for x, _ in pts}) < 2:
         return None
     mx = sum(x for x, _ in pts) / len(pts)
     my = sum(y for _, y in pts) / len(pts)
     sxx = sum((x - mx) ** 2 for x, _ in pts)
-    b = sum((x - mx) * (y - my) for x, y in pts) / sxx
-    return math.exp(my - b * mx), b
-
-
-def fit_exponent(points: list[tuple[float, float]]) -> float | None:
-    """b of y = a·x^b (fit_power); None with fewer than 2 distinct x."""
-    fit = fit_power(points)
-    return None if fit is None else fit[1]
+    return sum((x - mx) * (y - my) for x, y in pts) / sxx
 
 
 def stage_rec(run: dict, stage: str) -> dict | None:

@@ -1,45 +1,41 @@
-"""Reconstruct beside OpenSplat on a CPU: the same photos, poses and iterations (issue 44).
+"""Reconstruct beside OpenSplat on a CPU: the same photos, poses and iterations.
 
 python bench/peers.py --opensplat-src DIR                  # build, then every scene
 python bench/peers.py --opensplat-src DIR --build-only     # build (or find) it only
-python bench/peers.py --opensplat-src DIR --fetchcontent DEPS --scenes herzjesu_p8
-python bench/peers.py --opensplat-src DIR --iterations 300 --scenes bench:0  # short
+python bench/peers.py --opensplat-src DIR --fetchcontent DEPS --scenes herzjesu_p8 \
+    --iterations 500                                       # what the figures used
 
 OpenSplat (C++ on libtorch; https://github.com/pierotofy/OpenSplat, AGPL-3.0) is
 built from a source tree you give (`--opensplat-src`; nothing of it is in this
-repository) against the torch in this environment (its libtorch: `torch.utils.
-cmake_prefix_path`) and the system's OpenCV (Debian: `apt install libopencv-dev`),
-with `-DGPU_RUNTIME=CPU`, into `<work>/build/<id>/` (`--build-cache DIR` elsewhere;
-id: the source's git commit or content, torch's version and the options; a finished
-build is reused). Its CMake
-fetches three header libraries from GitHub at configure time; without a network,
-`--fetchcontent DEPS` names a folder holding their sources as `DEPS/nlohmann_json`,
-`DEPS/nanoflann` and `DEPS/cxxopts` (the tags its CMakeLists.txt names), and the
-build runs disconnected.
+repository) against this environment's torch (`torch.utils.cmake_prefix_path`) and
+the system's OpenCV (Debian: `apt install libopencv-dev`), with `-DGPU_RUNTIME=CPU`,
+into `<work>/build/<id>/` (`--build-cache DIR` elsewhere; a finished build is
+reused). Its CMake fetches three header libraries at configure time; without a
+network, `--fetchcontent DEPS` holds their sources as `DEPS/nlohmann_json`,
+`DEPS/nanoflann` and `DEPS/cxxopts` (the tags its CMakeLists.txt names).
 
 Scenes (`--scenes`; default `herzjesu_p8 fountain_p11 bench:0`): a real set from
-`--real DIR` (its photos posed once by `ptovs sfm`, the split it leaves: every 10th
-photo held out), or `bench:SEED`, a bench-preset synthetic scene (its model and split
-as generated). Both tools start from that one COLMAP model: OpenSplat gets a project
-of the train photos (`images/`, `sparse/0/*.bin`: the held-out photos removed) and the
-same working size (`-d r`, the downscale ptovs chose; `--num-downscales 0`, so that
-every step sees that size, as ptovs's do); `--keep-crs` makes its PLY share the
-model's frame. Each tool: the same iterations (`--iterations`, default ptovs's 2,500),
-`--threads` threads (OMP_NUM_THREADS and torch's), one job at a time, under GNU time.
+`--real DIR`, posed once by `ptovs sfm` (every 10th photo held out), or `bench:SEED`,
+a bench-preset synthetic scene. Both tools start from that one COLMAP model at the
+same working size: OpenSplat gets a project of the train photos (`-d 1
+--num-downscales 0 --keep-crs`). Each tool: the same iterations, `--threads` threads,
+one job at a time, under GNU time.
 
-Reported per scene and tool: wall time, seconds a step, peak RSS, Gaussians and
-held-out PSNR on the same held-out photos at the same working size, every pixel.
-OpenSplat's PLY is rendered by ptovs's rasterizer (the same 3DGS image formation;
-OpenSplat's fixed background colour), checked against OpenSplat's own render of a
-validation photo (`--val-render`). ptovs reports its stage's figures (f_α's reading
-of the held-out photo, and NeRF-W's protocol) and a plain-3DGS run (`wild=false`),
-the like-for-like peer of OpenSplat. Then the reach runs (`--reach-steps`, default a
-tenth, a fifth, two fifths and three fifths of `--iterations`): whole ptovs runs at
-fewer steps, the default and plain 3DGS, so that each one's time to OpenSplat's best
-held-out PSNR is a measured figure and not a bound (the default's time-matched run is
-one more point past `--iterations`). Then the time-matched runs: each tool gets the
-other's wall time (as iterations at its own measured rate). Results:
-<work>/peers.json, then a markdown table.
+Parts (`--parts`):
+  check  OpenSplat trains 20 steps and renders a held-out photo itself
+         (`--val-render`); its PLY drawn in depth order (any 3DGS viewer) and by
+         `opensplat_draw` (our reading of its CPU renderer, whose sort key is not
+         the depth) against that render (and again after --iterations)
+  same   both tools at --iterations: wall time, s a step, peak RSS, Gaussians,
+         held-out PSNR (OpenSplat's PLY both ways, every pixel; ptovs's stage
+         figures), OpenSplat's PSNR curve (a PLY every tenth of the run), and ptovs
+         plain 3DGS (`wild=false`), OpenSplat's like-for-like peer
+  reach  whole ptovs runs at fewer steps (`--reach-steps`; default 0.1, 0.2, 0.4 and
+         0.6 of --iterations), so that each variant's time to OpenSplat's best
+         held-out PSNR is read off measured points (linear between them)
+
+Results: <work>/peers.json (a part finished at these --iterations is kept; a run
+cut off goes on), then markdown tables.
 """
 
 from __future__ import annotations
@@ -55,8 +51,14 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import ROOT, Results, bench_scene, run_ptovs  # noqa: E402  (same folder)
-from threads import cpu_model, thread_env  # noqa: E402  (same folder)
+from common import (  # noqa: E402  (same folder)
+    ROOT,
+    Results,
+    bench_scene,
+    cpu_model,
+    run_ptovs,
+    thread_env,
+)
 
 REACH = (0.1, 0.2, 0.4, 0.6)  # ptovs's shorter runs, as fractions of --iterations
 VARIANTS = {"ptovs": (), "ptovs_plain": ("wild=false",)}  # record key: its --set's
@@ -220,17 +222,9 @@ def timed(cmd: list[str], env: dict, log: Path) -> tuple[float, float, list, dic
     return wall, rss, lines, quiet
 
 
-def run_opensplat(
-    binary: str,
-    proj: Path,
-    out: Path,
-    iterations: int,
-    threads: int,
-    val: str | None,
-    every: int = 0,
-    val_render: bool = False,
-    resume: Path | None = None,
-) -> dict:
+def run_opensplat(binary: str, proj: Path, out: Path, iterations: int, threads: int,
+                  val: str | None, every: int = 0, val_render: bool = False,
+                  resume: Path | None = None) -> dict:  # fmt: skip
     """OpenSplat --cpu on `proj` at its working size (no coarse-to-fine), its PLY in
     the model's frame. `every` > 0 also saves a PLY every that many steps; `resume`
     goes on from a PLY it saved (to step `iterations`)."""
@@ -258,9 +252,8 @@ def run_opensplat(
             "ply": str(out / "splat.ply")}  # fmt: skip
 
 
-def run_ours(
-    args: argparse.Namespace, scene_dir: Path, iterations: int, tag: str, *sets: str
-) -> dict:
+def run_ours(args: argparse.Namespace, scene_dir: Path, iterations: int, tag: str,
+             *sets: str) -> dict:  # fmt: skip
     """ptovs reconstruct on the scene (a fresh work folder), its stage's figures."""
     from ptovs.artifacts import Artifact, read_json_dataset
 
@@ -491,14 +484,13 @@ def reach(ours: list[dict], theirs: list[dict], key: str) -> dict:
 
 def reach_table(rec: dict, n: int) -> dict:
     """Each ptovs variant's time to OpenSplat's best, from a scene record's whole ptovs
-    runs at these --iterations `n` (the reach runs, the same-steps one and, for the
-    default, the time-matched one): {variant: {reading: reach(...)}}."""
+    runs at these --iterations `n` (the reach runs and the same-steps one):
+    {variant: {reading: reach(...)}}."""
     out: dict = {"for_iterations": n}
     for key in VARIANTS:
         pts = [{"step": r["iterations"], "s": r["wall_s"], "psnr_test": r["psnr_test"]}
                for k, r in rec.items()
-               if (k == key or k.startswith(f"{key}_reach_")
-                   or (key == "ptovs" and k == "ptovs_at_opensplat_time"))
+               if (k == key or k.startswith(f"{key}_reach_"))
                and isinstance(r, dict) and "wall_s" in r
                and r.get("for_iterations") == n]  # fmt: skip
         if pts and "opensplat" in rec:
@@ -507,17 +499,9 @@ def reach_table(rec: dict, n: int) -> dict:
     return out
 
 
-def check_render(
-    binary: str,
-    proj: Path,
-    out: Path,
-    scene,
-    val,
-    threads: int,
-    frame: tuple,
-    start: Path | None = None,
-    start_step: int = 0,
-) -> dict:
+def check_render(binary: str, proj: Path, out: Path, scene, val, threads: int,
+                 frame: tuple, start: Path | None = None,
+                 start_step: int = 0) -> dict:  # fmt: skip
     """Our readings of a PLY against OpenSplat's own render, at one withheld view:
     OpenSplat trains 20 steps (from scratch, or on from the PLY `start` saved at step
     `start_step`, a multiple of 10) and renders the view itself (`--val-render`);
@@ -551,9 +535,8 @@ def check_render(
                               "own_reading": round(psnr(own, photo), 3)}}  # fmt: skip
 
 
-def run_scene(
-    args: argparse.Namespace, build: dict, spec: str, rec: dict, save
-) -> None:
+def run_scene(args: argparse.Namespace, build: dict, spec: str, rec: dict,
+              save) -> None:  # fmt: skip
     from ptovs.scene import load_scene
 
     scene_dir = prepare_scene(args, spec)
@@ -566,13 +549,9 @@ def run_scene(
     info = export_project(scene, proj, tests[0])
     frame = opensplat_frame([*scene.train_views(), tests[0]])
     v0 = scene.train_views()[0]
-    rec["scene"] = {
-        **info,
-        "dir": str(scene_dir),
-        "test": len(tests),
-        "downscale": scene.downscale,
-        "working_size": [v0.width, v0.height],
-    }
+    rec["scene"] = {**info, "dir": str(scene_dir), "test": len(tests),
+                    "downscale": scene.downscale,
+                    "working_size": [v0.width, v0.height]}  # fmt: skip
     n, t = args.iterations, args.threads
     binary = build["binary"]
 
@@ -580,16 +559,8 @@ def run_scene(
         """A part's record: kept from an earlier run at these iterations (a run cut
         off goes on where it stopped; --fresh redoes it), else made and saved."""
         old = rec.get(key)
-        if (
-            not args.fresh
-            and old
-            and old.get("for_iterations") == n
-            and (
-                "wall_s" in old
-                or "psnr_depth_order_vs_theirs" in old
-                or "skipped" in old
-            )
-        ):
+        done = old and ("wall_s" in old or "psnr_depth_order_vs_theirs" in old)
+        if not args.fresh and done and old.get("for_iterations") == n:
             print(f"{spec}: {key} kept from {old.get('date')}", file=sys.stderr)
             return old
         new = make()
@@ -619,18 +590,6 @@ def run_scene(
         once("ptovs", lambda: run_ours(args, scene_dir, n, f"{tag}_wild"))
         once("ptovs_plain", lambda: run_ours(args, scene_dir, n, f"{tag}_plain",
                                              *VARIANTS["ptovs_plain"]))  # fmt: skip
-        for ours in VARIANTS:  # against either reading of OpenSplat's
-            for reading in ("psnr_test", "psnr_test_own"):
-                os_s = time_to(run["curve"], rec[ours]["psnr_test"], reading)
-                rec[ours][f"opensplat_s_to_same_psnr ({reading})"] = os_s
-                rec[ours][f"speedup_to_same_psnr ({reading})"] = (
-                    round(os_s / rec[ours]["wall_s"], 2) if os_s is not None else None
-                )
-        save()
-
-    def reach_all() -> None:
-        rec["reach"] = reach_table(rec, n)
-        save()
 
     if "reach" in args.parts and "opensplat" in rec:
         steps = args.reach_steps or sorted({max(1, round(n * f)) for f in REACH})
@@ -639,48 +598,21 @@ def run_scene(
                 once(f"{key}_reach_{k}",
                      lambda k=k, sets=sets: run_ours(args, scene_dir, k,
                                                      f"{tag}_reach", *sets))  # fmt: skip
-        reach_all()
-    if "matched" in args.parts and "opensplat" in rec and "ptovs" in rec:
-        os_wall, our_wall = rec["opensplat"]["wall_s"], rec["ptovs"]["wall_s"]
-
-        def opensplat_matched() -> dict:
-            k = max(1, round(n * our_wall / os_wall))
-            out = args.work / "os" / tag / "matched"
-            run = run_opensplat(binary, proj, out, k, t, info["val_image"])
-            run.update(ply_psnr(Path(run["ply"]), scene, frame, k))
-            return run
-
-        def ptovs_matched() -> dict:
-            k = max(1, round(n * os_wall / our_wall))
-            if k > args.max_matched_iterations:
-                return {"skipped": f"{k} iterations > --max-matched-iterations "
-                        f"{args.max_matched_iterations}"}  # fmt: skip
-            return run_ours(args, scene_dir, k, f"{tag}_matched")
-
-        once("opensplat_at_ptovs_time", opensplat_matched)
-        once("ptovs_at_opensplat_time", ptovs_matched)
-        if "reach" in args.parts:  # its time-matched run is one more point
-            reach_all()
+        rec["reach"] = reach_table(rec, n)
+        save()
 
 
 def table(results: dict) -> str:
-    rows = [
-        "| scene | tool | iterations | wall s | s/iteration | peak RSS MB | "
-        "Gaussians | held-out PSNR dB |",
-        "|---|---|---:|---:|---:|---:|---:|---:|",
-    ]
+    rows = ["| scene | tool | iterations | wall s | s/iteration | peak RSS MB | "
+            "Gaussians | held-out PSNR dB |", "|---|---|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
     names = {"opensplat": "OpenSplat --cpu", "ptovs": "ptovs (in the wild)",
-             "ptovs_plain": "ptovs, plain 3DGS (wild=false)",
-             "opensplat_at_ptovs_time": "OpenSplat, ptovs's wall time",
-             "ptovs_at_opensplat_time": "ptovs, OpenSplat's wall time"}  # fmt: skip
+             "ptovs_plain": "ptovs, plain 3DGS (wild=false)"}  # fmt: skip
     for spec, rec in results.get("scenes", {}).items():
         reach_runs = sorted(((k, v) for v in VARIANTS for k in rec
                              if k.startswith(f"{v}_reach_")),
                             key=lambda kv: (kv[1], int(kv[0].rsplit("_", 1)[1])))  # fmt: skip
-        for key, label in [
-            *names.items(),
-            *((k, f"{names[v]}, fewer steps") for k, v in reach_runs),
-        ]:
+        fewer = ((k, f"{names[v]}, fewer steps") for k, v in reach_runs)
+        for key, label in [*names.items(), *fewer]:
             r = rec.get(key)
             if not r or "wall_s" not in r:
                 continue
@@ -703,11 +635,7 @@ def table(results: dict) -> str:
                 if not r:
                     continue
                 ge = "≥ " if r["bound"] else ""
-                sp = (
-                    "not in its runs"
-                    if r["speedup"] is None
-                    else f"{ge}{r['speedup']}×"
-                )
+                sp = f"{ge}{r['speedup']}×" if r["speedup"] else "not in its runs"
                 reach_rows.append(f"| {spec} | {names[variant]} | {label} | "
                                   f"{r['target_psnr']:.2f} | {r['opensplat_s']} | "
                                   f"{r['ptovs_s']} | {sp} |")  # fmt: skip
@@ -716,13 +644,8 @@ def table(results: dict) -> str:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument(
-        "--opensplat-src",
-        type=Path,
-        required=True,
-        metavar="DIR",
-        help="an OpenSplat source tree (git clone of pierotofy/OpenSplat)",
-    )
+    p.add_argument("--opensplat-src", type=Path, required=True, metavar="DIR",
+                   help="an OpenSplat source tree (git clone of pierotofy/OpenSplat)")  # fmt: skip
     p.add_argument("--fetchcontent", type=Path, default=None, metavar="DEPS",
                    help="offline sources of its CMake downloads: DEPS/{nlohmann_json,"
                    "nanoflann,cxxopts}")  # fmt: skip
@@ -738,8 +661,8 @@ def main() -> None:
     p.add_argument("--scenes", nargs="+",
                    default=["herzjesu_p8", "fountain_p11", "bench:0"],
                    help="real set names and bench:SEED")  # fmt: skip
-    p.add_argument("--parts", nargs="+", default=["check", "same", "reach", "matched"],
-                   choices=["check", "same", "reach", "matched"])  # fmt: skip
+    p.add_argument("--parts", nargs="+", default=["check", "same", "reach"],
+                   choices=["check", "same", "reach"])  # fmt: skip
     p.add_argument("--reach-steps", type=int, nargs="+", default=None, metavar="N",
                    help="ptovs's shorter runs for its time to OpenSplat's best PSNR "
                    "(default: 0.1, 0.2, 0.4 and 0.6 of --iterations)")  # fmt: skip
@@ -751,12 +674,6 @@ def main() -> None:
     p.add_argument("--fresh", action="store_true",
                    help="redo every part; by default a part an earlier run finished at "
                    "these --iterations is kept (a run cut off goes on)")  # fmt: skip
-    p.add_argument(
-        "--max-matched-iterations",
-        type=int,
-        default=50_000,
-        help="skip ptovs's time-matched run past this many iterations",
-    )
     args = p.parse_args()
     results = Results(args.work / "peers.json")
     try:

@@ -1,9 +1,8 @@
-"""Real photos through `ptovs reconstruct` from images alone (the real photo sets: `--real DIR`, default data/real).
+"""Real photos through `ptovs reconstruct` from images alone (`--real DIR`, default data/real).
 
 python bench/real.py                                   # both sets, as they are (6 MP)
 python bench/real.py --sets fountain_p11 --megapixels 12   # resized to 12 MP first
 python bench/real.py --iterations 400                  # a shorter budget
-python bench/real.py --sfm-only default repeat_threshold=0   # SfM alone, variants
 
 For each set: the photos (optionally resized to `--megapixels`, JPEG q95) are copied
 to a folder of their own and `ptovs reconstruct --data FOLDER` runs with the default
@@ -12,10 +11,6 @@ working size, SfM and training time, the process's peak RSS, PSNR on train and
 held-out photos (the split SfM leaves), and the pose error against the set's
 ground-truth cameras after a Sim3 alignment of the camera centres. A picture of
 each held-out photo beside its render goes to docs/img/real_<set>.jpg.
-
-With `--sfm-only VARIANT ...` only `ptovs.sfm.run_sfm` runs, under each SfmConfig
-variant (as in bench/sfm.py: `a=1+b=2`, "default"): registered photos, SfM time and
-the pose error (Sim3 of the centres, and the rotations aligned alone).
 
 Results go to <work>/bench_real.json and print as markdown rows.
 """
@@ -159,43 +154,6 @@ def run_set(args: argparse.Namespace, name: str) -> dict:
     return res
 
 
-def run_sfm_only(args: argparse.Namespace, name: str, variant: str) -> dict:
-    import dataclasses
-    import time
-
-    import pycolmap
-    from sfm import parse_variant  # bench/sfm.py
-
-    from ptovs.sfm import SfmConfig, run_sfm
-
-    src = args.real / name
-    tag = f"{name}_{args.megapixels:g}mp" if args.megapixels > 0 else name
-    folder = args.work / "photos" / tag
-    copy_photos(src, folder, args.megapixels)
-    work = args.work / "sfm_only" / tag
-    shutil.rmtree(work, ignore_errors=True)
-    work.mkdir(parents=True)
-    config = dataclasses.replace(SfmConfig(), **parse_variant(variant))
-    t0 = time.perf_counter()
-    out = run_sfm(folder / "images", work, config)
-    seconds = time.perf_counter() - t0
-    rec = pycolmap.Reconstruction(str(out["model_dir"]))
-    est = {
-        Path(rec.images[i].name).stem + ".jpg": camera_pose(
-            rec.images[i].cam_from_world().matrix()
-        )
-        for i in rec.reg_image_ids()
-    }
-    res = dict(
-        registered=out["report"]["registered"],
-        photos=out["report"]["photos"],
-        seconds=round(seconds, 1),
-        pixel_scale=out["report"].get("pixel_scale"),
-    )
-    res.update(pose_error(est, truth_cameras(src)))
-    return res
-
-
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--sets", nargs="+", default=["fountain_p11", "herzjesu_p8"])
@@ -212,30 +170,8 @@ def main() -> None:
         "--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
         help="a config override for ptovs reconstruct (repeatable)",
     )  # fmt: skip
-    p.add_argument(
-        "--sfm-only", nargs="+", default=None, metavar="VARIANT",
-        help="SfM alone under these SfmConfig variants (no reconstruct)",
-    )  # fmt: skip
     args = p.parse_args()
     res = Results(args.work / "bench_real.json")
-    if args.sfm_only:
-        print_header(
-            "set", "variant", "registered", "SfM s", "rotation median / max (°), "
-            "Sim3 of centres", "rotation median / p90 (°), rotations aligned",
-        )  # fmt: skip
-        for name in args.sets:
-            for variant in args.sfm_only:
-                r = run_sfm_only(args, name, variant)
-                res[f"sfm/{name}/{args.megapixels:g}mp/{variant}"] = r
-                res.save()
-                print(
-                    f"| {name} | {variant} | {r['registered']}/{r['photos']} | "
-                    f"{r['seconds']} | {r['rot_median_deg']:.2f} / "
-                    f"{r['rot_max_deg']:.2f} | {r['rot_aligned_median_deg']:.2f} / "
-                    f"{r['rot_aligned_p90_deg']:.2f} |",
-                    flush=True,
-                )
-        return
     print_header(
         "set", "photos", "registered", "r, working size", "SfM + train wall (s)",
         "s/it", "peak RSS (MB)", "PSNR train / held-out", "rotation median (°)",

@@ -1,4 +1,4 @@
-"""Segment levels on real photos, side by side (issue 40): the photo, then each
+"""Segment levels on real photos, side by side: the photo, then each
 segmenter's s / m / l levels (every segment filled with its mean colour, its
 boundary drawn), one row per segmenter.
 

@@ -8,7 +8,7 @@ encoder that sees the photos themselves?
 Per seed and variant, `ptovs style` on the instrument's chain (<work>/runs,
 configs/accuracy.toml; missing stages are built) with its defaults: 20 seeded train
 views, each voting by max score over the scene's five candidate styles. The
-raw-encoder baseline (bench/apps.py's `raw_style_votes`, the authors' raw-CLIP
+raw-encoder baseline (bench/common.py's `raw_style_votes`, the authors' raw-CLIP
 baseline with the stand-in encoder) votes with the same views' whole photos and,
 for reference, with the landmark alone under its truth mask. Each winner is the
 most-voted style (ties: the first in the vocabulary's order).
@@ -27,8 +27,14 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from apps import raw_style_votes  # noqa: E402  (same folder)
-from common import ROOT, Results, instrument_chain, run_ptovs, seed_list  # noqa: E402
+from common import (  # noqa: E402  (same folder)
+    ROOT,
+    Results,
+    instrument_chain,
+    raw_style_votes,
+    run_ptovs,
+    seed_list,
+)
 
 
 def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:

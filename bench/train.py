@@ -1,4 +1,4 @@
-"""Benchmark train-ae and train-male (issue 10 targets).
+"""Benchmark train-ae and train-male on the bench preset.
 
 python bench/train.py --parts step                 # fast-path step on the raster scene
 python bench/train.py --parts bench --seeds 0      # stages on bench (needs bench/extract.py's chain)
@@ -9,9 +9,7 @@ Parts:
          4 appearances × 3 levels (D = 36) and one level (D = 12), against the same
          step through `render()`; median of 20 after 3 warm-ups
   bench  per seed, through the CLI in the bench work dir: train-ae and train-male
-         (default: plateau stop), the langsplat and langsplat-wild variants, then
-         train-male with a fixed 30k iterations (--fixed-seeds); wall time, peak RSS (GNU time)
-         and the stages' own metrics
+         (the defaults); wall time, peak RSS (GNU time) and the stages' own metrics
 
 Results go to <work>/bench_train.json and are printed as markdown rows.
 """
@@ -99,17 +97,11 @@ def _metrics(path: Path) -> dict:
         return read_json_dataset(art.root()["metrics_json"])
 
 
-def _path(stdout: str, stage: str | None = None) -> Path:
-    lines = stdout.strip().splitlines()
-    if stage:
-        line = next(x for x in lines if x.startswith(stage + " "))
-        return Path(line.split()[-1])
-    return Path(lines[-1].split(": ", 1)[1])
+def _path(stdout: str) -> Path:
+    return Path(stdout.strip().splitlines()[-1].split(": ", 1)[1])
 
 
-def bench_seed(
-    work: Path, scene: Path, force: bool, fixed30k: bool, variants: bool
-) -> dict:
+def bench_seed(work: Path, scene: Path, force: bool) -> dict:
     res: dict = {}
     extra = ["--force"] if force else []
     for stage in ("train-ae", "train-male"):
@@ -117,33 +109,6 @@ def bench_seed(
         res[stage] = {"wall_s": round(wall, 1), "peak_rss_mb": round(rss)}
         res[stage]["metrics"] = _metrics(_path(out))
         print(stage, json.dumps(res[stage]), flush=True)
-    for variant in ("langsplat", "langsplat-wild") if variants else ():
-        wall, rss, out = run_ptovs(
-            work, "train", "--variant", variant, "--data", str(scene)
-        )
-        stages = {}
-        for line in out.strip().splitlines():
-            parts = line.split()
-            if len(parts) >= 4 and parts[2].replace(".", "").isdigit():
-                stages[parts[0]] = {"state": parts[1], "s": float(parts[2])}
-        res[variant] = {
-            "wall_s": round(wall, 1),
-            "peak_rss_mb": round(rss),
-            "stages": stages,
-            "male": _metrics(_path(out, "train-male")),
-            "ae": _metrics(_path(out, "train-ae")),
-        }
-        print(variant, json.dumps(res[variant]), flush=True)
-    if not fixed30k:
-        return res
-    fixed = ["--set", "stop=fixed", "--set", "iterations=30000"]
-    wall, rss, out = run_ptovs(work, "train-male", "--data", str(scene), *fixed, *extra)
-    res["train-male-fixed30k"] = {
-        "wall_s": round(wall, 1),
-        "peak_rss_mb": round(rss),
-        "metrics": _metrics(_path(out)),
-    }
-    print("fixed", json.dumps(res["train-male-fixed30k"]), flush=True)
     return res
 
 
@@ -156,20 +121,6 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=ROOT / "data")
     ap.add_argument("--work", type=Path, default=ROOT / "work" / "bench")
     ap.add_argument("--force", action="store_true", help="retrain (timing)")
-    ap.add_argument(
-        "--fixed-seeds",
-        nargs="*",
-        type=int,
-        default=[0],
-        help="seeds that also train a fixed 30k iterations (~25 min each)",
-    )
-    ap.add_argument(
-        "--variant-seeds",
-        nargs="*",
-        type=int,
-        default=None,
-        help="seeds that also run the langsplat variants (default: every seed)",
-    )
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     # each seed's entry is replaced as a whole, others kept
@@ -183,11 +134,7 @@ def main() -> None:
         for seed in args.seeds:
             scene = bench_scene(args.data, seed)
             results[f"bench_s{seed}"] = bench_seed(
-                args.work / "default",
-                scene,
-                args.force,
-                seed in args.fixed_seeds,
-                args.variant_seeds is None or seed in args.variant_seeds,
+                args.work / "default", scene, args.force
             )
             save()
 

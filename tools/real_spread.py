@@ -1,4 +1,4 @@
-"""The grey-level spread of real photographs, whole and in part-sized windows (issue 41).
+"""The grey-level spread of real photographs, whole and in part-sized windows.
 
     python tools/real_spread.py PHOTO_FOLDER [PHOTO_FOLDER ...]
 
