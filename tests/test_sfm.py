@@ -136,6 +136,12 @@ def test_sfm_is_cached_and_the_stage_reads_it(posed, photos, tmp_path):
     )
     assert res.exit_code == 0, res.output
     assert "views" in res.output and "reconstruct" in res.output
+    # each stage's advice names the photo folder given, not the posed copy in work/
+    advice = [x.split("run: ", 1)[1] for x in res.output.splitlines() if "run: " in x]
+    assert advice, res.output
+    for command in advice:
+        assert command.endswith(f"--data {data}"), command
+        assert str(work) not in command, command
 
 
 def test_sfm_is_a_stage_status_shows_and_never_runs(posed, photos, tmp_path):

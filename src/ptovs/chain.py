@@ -63,11 +63,23 @@ class RunContext:
 
 
 class SceneRef:
-    """A scene folder plus its `[scene]` options; loads and fingerprints lazily."""
+    """A scene folder plus its `[scene]` options; loads and fingerprints lazily.
 
-    def __init__(self, name: str, data: Path, config: SceneConfig, work_dir: Path):
+    `data` is the posed scene that is read; `source` is the folder the user gave as
+    --data (a folder of unposed photos that SfM posed into `data`, else `data`):
+    the commands this module advises name it."""
+
+    def __init__(
+        self,
+        name: str,
+        data: Path,
+        config: SceneConfig,
+        work_dir: Path,
+        source: Path | None = None,
+    ):
         self.name = name
         self.data = Path(data)
+        self.source = Path(data if source is None else source)
         self.config = config
         self.work_dir = Path(work_dir)
         self._scene = None
@@ -155,7 +167,8 @@ class Chain:
         return self._keys[stage]
 
     def hint(self, stage: str) -> str:
-        return f"ptovs {stage} --scene {self.scene.name} --data {self.scene.data}"
+        """The command that makes `stage`, with the folder the user gave as --data."""
+        return f"ptovs {stage} --scene {self.scene.name} --data {self.scene.source}"
 
     def inputs(self, stage: str) -> Any:
         """The stage's `Inputs`, with every upstream artifact verified and opened."""

@@ -353,6 +353,8 @@ def _status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:
         sfm_line = f"  {SFM:<20} {key[:12]}  done     {photos}"
         scene_name, data = name, posed  # the posed scene the sfm stage left
     ref = resolve_scene(obj, scene_name, data)
+    if sfm_line:
+        ref.source = folder  # the advice names the photo folder given, not the copy
     scene = ref.load()
     chain = Chain(obj, ref)
     click.echo(f"scene {ref.name}: {ref.data}")

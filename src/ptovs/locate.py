@@ -125,6 +125,7 @@ def resolve_scene(
     the `sfm` stage (cached); `before_sfm` runs first when SfM has still to run
     (the command's preflight checks that need no scene)."""
     scene_name, data, photos = scene_source(scene_name, data)
+    source = data  # what the user gave: advice names it, not the posed copy
     if photos is not None:  # unposed photos: SfM first (cached), then a COLMAP scene
         if before_sfm is not None:
             from ptovs.keys import read_only
@@ -136,4 +137,4 @@ def resolve_scene(
         data = pose_photos(ctx, scene_name, photos, run=True)[2]
     section = ctx.section("scene", sets)
     config = build_config(SceneConfig, section, "scene")
-    return SceneRef(scene_name, Path(data), config, ctx.work_dir)
+    return SceneRef(scene_name, Path(data), config, ctx.work_dir, source)
