@@ -131,7 +131,8 @@ def test_select_ply_holds_exactly_the_selected_gaussians(
 ):
     from ptovs.apps import close_inputs
     from ptovs.apps.select import select_gaussians
-    from ptovs.stage import Chain, RunContext, resolve_scene
+    from ptovs.chain import Chain, RunContext
+    from ptovs.locate import resolve_scene
 
     out, rest = tmp_path / "sel.ply", tmp_path / "rest.ply"
     res = _cli(app_work, "select", "Brick Facade", "--data", str(tiny_scene_dir),

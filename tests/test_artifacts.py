@@ -9,9 +9,10 @@ import h5py
 import numpy as np
 import pytest
 
-from ptovs.artifacts import Artifact, CorruptArtifact, Store, artifact_key
+from ptovs.artifacts import Artifact, CorruptArtifact, Store
 from ptovs.config import build_config, canonical_json, parse_sets
 from ptovs.errors import InputError
+from ptovs.keys import artifact_key
 
 
 @dataclasses.dataclass(frozen=True)
@@ -201,7 +202,8 @@ def test_store_writes_never_follow_a_planted_link(tmp_path: Path):
 
     import torch
 
-    from ptovs.artifacts import Checkpoint, fingerprint_files
+    from ptovs.artifacts import Checkpoint
+    from ptovs.keys import fingerprint_files
 
     victim = tmp_path / "victim"
     victim.write_bytes(b"precious")

@@ -10,7 +10,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from ptovs.stage import PIPELINE, STAGE_MODULES
+from ptovs.pipeline import PIPELINE
+from ptovs.registry import STAGE_MODULES
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "ci.toml"
 
@@ -52,7 +53,7 @@ def test_whole_chain_on_tiny(tmp_path, tiny_scene_dir):
 
 def test_makefile_stages_follow_the_pipeline():
     """The Makefile's STAGES and the CLI's stage groups are the one PIPELINE."""
-    from ptovs.stage import EXTRACT_STAGES, TRAIN_STAGES
+    from ptovs.registry import EXTRACT_STAGES, TRAIN_STAGES
 
     root = Path(__file__).resolve().parents[1]
     out = subprocess.run(["make", "-s", "print-STAGES"], cwd=root, capture_output=True,
@@ -67,7 +68,7 @@ def test_set_grammar_is_one_for_every_command():
     import click
     import pytest
 
-    from ptovs.stage import split_sets
+    from ptovs.options import split_sets
 
     got = split_sets(
         ["iterations=10", "train-ae.lr=1e-3", "scene.downscale=2", "x.y=a.b=c"],

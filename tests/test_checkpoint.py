@@ -10,7 +10,8 @@ import torch
 from click.testing import CliRunner
 
 from ptovs.artifacts import Checkpoint, Store
-from ptovs.stage import scene_input, stage_command
+from ptovs.registry import scene_input
+from ptovs.stage import stage_command
 
 
 def test_checkpoint_save_load_and_refusals(tmp_path):

@@ -79,7 +79,7 @@ def test_module_entry_point_and_help():
 def test_default_toml_matches_every_stage_default():
     """configs/default.toml documents the defaults; it must not change any key."""
     from ptovs.config import build_config, load_config
-    from ptovs.stage import all_stages
+    from ptovs.registry import all_stages
 
     root = Path(__file__).resolve().parents[1]
     cfg = load_config(root / "configs" / "default.toml")
@@ -91,8 +91,7 @@ def test_default_toml_matches_every_stage_default():
 def test_every_shipped_config_is_valid():
     """Each file under configs/ passes the whole-config check (sections, keys,
     types) that `--config` runs before any stage."""
-    from ptovs.config import load_config
-    from ptovs.stage import check_config
+    from ptovs.config import check_config, load_config
 
     files = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.toml"))
     assert len(files) >= 5, files
@@ -132,7 +131,7 @@ def test_a_folder_inside_a_scene_names_the_scene_to_give(
     """--data <scene>/dense, .../dense/images, .../sparse/N or a photo collection's
     images/ would become a scene named "dense" or "images" that lost its split and
     labels: each is refused with the folder to give instead."""
-    from ptovs.stage import scene_part
+    from ptovs.locate import scene_part
 
     dense = tiny_scene_dir / "dense"
     model = tmp_path / "colmap" / "sparse" / "0"
@@ -259,9 +258,8 @@ def test_a_number_no_stage_can_use_is_refused_and_the_range_named(tiny_scene_dir
 def test_a_list_whose_quotes_the_shell_ate_is_read_and_its_items_checked():
     """`--set extract-features.levels=[s,m]` (bash drops the quotes of ["s","m"])
     is the list it means; an unknown level is named before anything runs."""
-    from ptovs.config import parse_sets
+    from ptovs.config import check_config, parse_sets
     from ptovs.errors import InputError
-    from ptovs.stage import check_config
 
     assert parse_sets(["extract-features.levels=[s, m]"]) == {
         "extract-features": {"levels": ["s", "m"]}

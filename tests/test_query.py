@@ -378,7 +378,8 @@ def test_vocabulary_change_renews_query_keys_only(scene_copy, tmp_path):
     """Text embeddings come from synthetic/vocabulary.json, which the scene
     fingerprint leaves out: a changed vocabulary gives query (and so evaluate)
     new keys, and leaves the trained field's keys alone."""
-    from ptovs.stage import Chain, RunContext, resolve_scene
+    from ptovs.chain import Chain, RunContext
+    from ptovs.locate import resolve_scene
 
     def keys() -> dict[str, str]:
         ctx = RunContext(tmp_path / "work")

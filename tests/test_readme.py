@@ -23,8 +23,7 @@ import click
 import pytest
 
 from ptovs.cli import main
-from ptovs.config import parse_sets
-from ptovs.stage import check_config
+from ptovs.config import check_config, parse_sets
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -100,7 +99,7 @@ def test_a_readme_command_parses_and_its_settings_exist(argv):
 
 
 def _sections() -> list[str]:
-    from ptovs.stage import REGISTRY, STAGE_MODULES
+    from ptovs.registry import REGISTRY, STAGE_MODULES
 
     return list(dict.fromkeys([*STAGE_MODULES, *REGISTRY]))
 

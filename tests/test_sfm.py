@@ -136,6 +136,12 @@ def test_sfm_is_cached_and_the_stage_reads_it(posed, photos, tmp_path):
     )
     assert res.exit_code == 0, res.output
     assert "views" in res.output and "reconstruct" in res.output
+    # each stage's advice names the photo folder given, not the posed copy in work/
+    advice = [x.split("run: ", 1)[1] for x in res.output.splitlines() if "run: " in x]
+    assert advice, res.output
+    for command in advice:
+        assert command.endswith(f"--data {data}"), command
+        assert str(work) not in command, command
 
 
 def test_sfm_is_a_stage_status_shows_and_never_runs(posed, photos, tmp_path):
@@ -283,7 +289,7 @@ def test_exif_rotated_photo_is_staged_upright(tmp_path, caplog):
 
 
 def _repeat_mask_reference(xy, scale, desc, threshold):
-    """Float64 brute force of ptovs.sfm._repeat_mask."""
+    """Float64 brute force of ptovs.sfm_match._repeat_mask."""
     d = desc.astype(np.float64)
     d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
     keep = np.ones(len(xy), bool)
@@ -297,7 +303,7 @@ def _repeat_mask_reference(xy, scale, desc, threshold):
 
 
 def test_repeated_features_are_dropped_and_one_place_kept():
-    from ptovs.sfm import _repeat_mask
+    from ptovs.sfm_match import _repeat_mask
 
     rng = np.random.default_rng(0)
     n = 60
@@ -333,7 +339,7 @@ def test_repeated_features_are_dropped_and_one_place_kept():
 
 
 def test_pixel_thresholds_follow_the_photo_size(tmp_path):
-    from ptovs.sfm import _pixel_scale
+    from ptovs.sfm_match import pixel_scale
 
     def db_with(sizes):
         path = tmp_path / f"{len(sizes)}_{sizes[0][0]}.db"
@@ -351,11 +357,11 @@ def test_pixel_thresholds_follow_the_photo_size(tmp_path):
         return path
 
     cfg = SfmConfig()
-    assert _pixel_scale(db_with([(250, 141)] * 5), cfg) == 0.25  # bench photos
-    assert _pixel_scale(db_with([(640, 480)] * 3), cfg) == pytest.approx(0.625)
-    assert _pixel_scale(db_with([(4243, 2828)] * 3), cfg) == 1.0  # 12 MP: COLMAP's
-    assert _pixel_scale(db_with([(100, 80)]), cfg) == 0.25  # clamped
-    assert _pixel_scale(db_with([(640, 480)]), SfmConfig(pixel_scale=2.0)) == 2.0
+    assert pixel_scale(db_with([(250, 141)] * 5), cfg) == 0.25  # bench photos
+    assert pixel_scale(db_with([(640, 480)] * 3), cfg) == pytest.approx(0.625)
+    assert pixel_scale(db_with([(4243, 2828)] * 3), cfg) == 1.0  # 12 MP: COLMAP's
+    assert pixel_scale(db_with([(100, 80)]), cfg) == 0.25  # clamped
+    assert pixel_scale(db_with([(640, 480)]), SfmConfig(pixel_scale=2.0)) == 2.0
 
 
 def test_sfm_tips_are_valid_settings_that_change_what_ran():
@@ -364,9 +370,8 @@ def test_sfm_tips_are_valid_settings_that_change_what_ran():
     named the defaults)."""
     import re
 
-    from ptovs.config import build_config, parse_sets
+    from ptovs.config import build_config, check_config, parse_sets
     from ptovs.sfm import SfmConfig, sfm_tips
-    from ptovs.stage import check_config
 
     for ran, pairing in ((SfmConfig(), "exhaustive"), (SfmConfig(), "retrieval"),
                          (SfmConfig(min_num_matches=6, max_image_size=4096), "")):  # fmt: skip

@@ -295,8 +295,10 @@ def test_concurrent_runs_do_not_corrupt(env):
 def test_label_edits_rekey_only_the_stages_that_read_labels(scene_copy: Path):
     """A label edit changes the keys of query and evaluate, and of nothing before
     them: reconstruct and training are reused (issue 23)."""
+    from ptovs.chain import Chain, RunContext
     from ptovs.config import load_config
-    from ptovs.stage import PIPELINE, Chain, RunContext, resolve_scene
+    from ptovs.locate import resolve_scene
+    from ptovs.pipeline import PIPELINE
 
     def keys() -> dict[str, str]:
         ctx = RunContext(scene_copy.parent / "work", load_config(None))

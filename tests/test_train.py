@@ -15,6 +15,7 @@ from ptovs.artifacts import Artifact, read_json_dataset
 from ptovs.cli import main
 from ptovs.field import language as lang
 from ptovs.field.language import load_codes
+from ptovs.field.lift import feature_lift_sums
 from ptovs.memory import release
 from ptovs.nets.autoencoder import LanguageAE, load_autoencoder
 from ptovs.raster import blend_weights, render
@@ -548,7 +549,7 @@ def test_feature_lift_sums_match_a_dense_reference():
     u_t = rng.random((18, 24)).astype(np.float32)
     valid = np.stack([s.reshape(len(s), -1).T >= 0 for s in segs], axis=-1)
     m = lang.mask_weights(valid, u_t, None)
-    got = lang.feature_lift_sums(bw.csr()[1], segs, feats, m)
+    got = feature_lift_sums(bw.csr()[1], segs, feats, m)
     wmat = bw.W.to_dense().double()  # [HW, P]
     for a, (seg, f) in enumerate(zip(segs, feats, strict=True)):
         for lv in range(seg.shape[0]):
@@ -582,11 +583,11 @@ def test_feature_lift_sums_keeps_no_memory_between_calls():
     feats = [rng.normal(size=(120, 8)).astype(np.float32) for _ in segs]
     valid = np.stack([s.reshape(3, -1).T >= 0 for s in segs], axis=-1)
     m = lang.mask_weights(valid, None, None)
-    out = lang.feature_lift_sums(wt_csr, segs, feats, m)
+    out = feature_lift_sums(wt_csr, segs, feats, m)
 
     def calls(k: int) -> float:  # resident MB after k more calls, freed pages returned
         for _ in range(k):
-            lang.feature_lift_sums(wt_csr, segs, feats, m, out=out)
+            feature_lift_sums(wt_csr, segs, feats, m, out=out)
         release()  # as train-male does after every view
         return _resident_mb()
 

@@ -33,8 +33,9 @@ def view_work(tmp_path_factory, trained_work):
 
 
 def _chain(work: Path, scene_dir: Path):
+    from ptovs.chain import Chain, RunContext
     from ptovs.config import parse_sets
-    from ptovs.stage import Chain, RunContext, resolve_scene
+    from ptovs.locate import resolve_scene
 
     sets = parse_sets([r.split("=", 1)[1] for r in RECON])
     ctx = RunContext(work, sets, False)

@@ -14,7 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ptovs.artifacts import Artifact
-from ptovs.stage import scene_input, stage_command, upstream
+from ptovs.registry import scene_input, upstream
+from ptovs.stage import stage_command
 
 
 def _note(what: str) -> None:

@@ -12,19 +12,12 @@ from pathlib import Path
 import click
 
 from ptovs import __version__
+from ptovs.chain import RunContext, run_stages
 from ptovs.config import load_config, merge, parse_sets
 from ptovs.errors import InputError, MissingInputError
-from ptovs.stage import (
-    EXTRACT_STAGES,
-    STAGE_MODULES,
-    TRAIN_STAGES,
-    RunContext,
-    chain_options,
-    resolve_scene,
-    run_stages,
-    scene_options,
-    variant_chain,
-)
+from ptovs.locate import resolve_scene
+from ptovs.options import chain_options, scene_options, variant_chain
+from ptovs.registry import EXTRACT_STAGES, STAGE_MODULES, TRAIN_STAGES
 
 log = logging.getLogger("ptovs")
 
@@ -114,7 +107,7 @@ class LazyGroup(click.Group):
                 and not name.startswith("-")
                 and name not in self.list_commands(ctx)
             ):
-                from ptovs.stage import did_you_mean
+                from ptovs.config import did_you_mean
 
                 hint = did_you_mean(name, self.list_commands(ctx))
                 if hint:
@@ -242,7 +235,7 @@ def main(
     try:
         config = merge(load_config(config_file), parse_sets(sets))
         if config:
-            from ptovs.stage import check_config
+            from ptovs.config import check_config
 
             check_config(config, "--config/--set")
     except (InputError, MissingInputError) as exc:
@@ -334,14 +327,16 @@ def status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:
     A folder of unposed photos first shows its `sfm` stage; status never runs it.
     It reads only: nothing is written, not even the photos' fingerprint cache.
     """
-    from ptovs.artifacts import read_only
+    from ptovs.keys import read_only
 
     with read_only():
         _status(obj, scene_name, data)
 
 
 def _status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:
-    from ptovs.stage import SFM, Chain, all_stages, pose_photos, scene_source
+    from ptovs.chain import Chain
+    from ptovs.locate import pose_photos, scene_source
+    from ptovs.registry import SFM, all_stages
 
     click.echo(f"work dir: {Path(obj.work_dir).resolve()}")
 
@@ -358,6 +353,8 @@ def _status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:
         sfm_line = f"  {SFM:<20} {key[:12]}  done     {photos}"
         scene_name, data = name, posed  # the posed scene the sfm stage left
     ref = resolve_scene(obj, scene_name, data)
+    if sfm_line:
+        ref.source = folder  # the advice names the photo folder given, not the copy
     scene = ref.load()
     chain = Chain(obj, ref)
     click.echo(f"scene {ref.name}: {ref.data}")
@@ -414,9 +411,9 @@ def export_ply(
     rotations, with the ΔSH of one image's appearance (or a neutral one) baked
     into the SH, so any 3DGS viewer shows it.
     """
+    from ptovs.chain import Chain
     from ptovs.field.export import export_field_ply
     from ptovs.outputs import check_outputs, require_suffix
-    from ptovs.stage import Chain
 
     check_outputs({"--out": out}, suffix=".ply")
     require_suffix("--out", out, (".ply",))
@@ -492,9 +489,9 @@ def export_features(
     (k = 0.. novel, the last = self), the layout the authors' code reads.
     """
     from ptovs.artifacts import read_json_dataset
+    from ptovs.chain import Chain
     from ptovs.features import SegmentFeatures, langsplat_suffix, write_langsplat
     from ptovs.outputs import check_output_dir
-    from ptovs.stage import Chain
 
     check_output_dir("--out", out)
     ref = resolve_scene(obj, scene_name, data)

@@ -1,4 +1,5 @@
-"""Configuration: TOML files, `--set key=value` overrides and canonical JSON.
+"""Configuration: TOML files, `--set key=value` overrides, canonical JSON, and the
+check of a whole config against the sections of `ptovs.registry`.
 
 A config file has one table per stage (`[uncertainty]`, `[train-ae]`, ...) plus
 `[scene]` for how scenes are read. `--set` takes `section.key=value` on the group
@@ -20,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from ptovs.errors import InputError, MissingInputError
+from ptovs.registry import config_class, config_keys, config_sections, section_names
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -100,8 +102,6 @@ def did_you_mean(name: str, choices: Iterable[str], fmt: str = "{!r}") -> str:
 
 def _sections_with(key: str, value: str) -> str:
     """Advice for a key given without its section: the sections that have it."""
-    from ptovs.stage import config_sections
-
     sections = config_sections()
     have = [name for name, keys in sections.items() if key in keys]
     if not have:
@@ -264,3 +264,30 @@ def build_config(cls: type, section: Mapping[str, Any] | None, name: str) -> Any
         return cls(**kwargs)
     except (TypeError, ValueError) as exc:
         raise InputError(f"[{name}]: {exc}") from None
+
+
+def check_config(config: Mapping[str, Any], origin: str = "the config") -> None:
+    """Every section and key of a merged config (`--config` file plus the group's
+    `--set` items), checked before anything runs: an unknown section or key, or a
+    value of the wrong type, is an InputError with the nearest valid name."""
+    sections = section_names()
+    for name, section in config.items():
+        if name not in sections:
+            raise InputError(
+                f"{origin}: unknown section [{name}]"
+                + did_you_mean(name, sections, "[{}]")
+                + f"; sections: {', '.join(sections)}"
+            )
+        if not isinstance(section, Mapping):
+            raise InputError(
+                f"{origin}: [{name}] must be a table of KEY = VALUE, got {section!r}"
+            )
+        keys = config_keys(name)
+        for key in section:
+            if key not in keys:
+                raise InputError(
+                    f"{origin}: [{name}] has no key {key!r}"
+                    + did_you_mean(key, keys)
+                    + f"; valid keys: {', '.join(sorted(keys))}"
+                )
+        build_config(config_class(name), section, name)  # the values' types

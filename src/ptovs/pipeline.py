@@ -3,7 +3,7 @@
 The Makefile (`make all`) and the Snakemake workflow (`workflow/Snakefile`) both
 run every stage of every scene; they take the stages, in order, and the scenes
 under a data folder from here, so the two can never disagree. The stage framework
-(`ptovs.stage`) takes PIPELINE from here too.
+(`ptovs.registry`, `ptovs.chain`) take PIPELINE from here too.
 
 Standard library only: the Makefile runs it with the system Python before the
 virtual environment exists,

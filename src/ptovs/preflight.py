@@ -127,7 +127,7 @@ def preflight(chain: Any, stages: list[str]) -> None:
     """Check what `stages` (those not yet done) will need, before any runs.
     Nothing is written unless every check passes (not even the photos'
     fingerprint cache)."""
-    from ptovs.artifacts import flush_fingerprints, read_only
+    from ptovs.keys import flush_fingerprints, read_only
 
     ok = False
     try:

@@ -36,7 +36,8 @@ def trained_chain(
         sets: SECTION.KEY=VALUE overrides; `query.*` ones set the decoding and
             relevancy knobs the applications share with `ptovs query`.
     """
-    from ptovs.stage import run_stages, variant_chain
+    from ptovs.chain import run_stages
+    from ptovs.options import variant_chain
 
     chain, ref = variant_chain(obj, scene_name, data, variant, sets, until="train-male")
     run_stages(chain, chain.closure("train-male"))

@@ -29,7 +29,9 @@ import numpy as np
 import torch
 
 from ptovs.apps import close_inputs, trained_chain
+from ptovs.chain import RunContext
 from ptovs.errors import InputError
+from ptovs.options import chain_options
 from ptovs.outputs import (
     OutputError,
     check_outputs,
@@ -38,7 +40,6 @@ from ptovs.outputs import (
     write_text_output,
 )
 from ptovs.raster import Camera
-from ptovs.stage import RunContext, chain_options
 
 EDGE_BGR = (0, 230, 255)
 FILL_BGR = (40, 80, 255)

@@ -24,9 +24,10 @@ import click
 import numpy as np
 
 from ptovs.apps import close_inputs, trained_chain
+from ptovs.chain import RunContext
 from ptovs.errors import InputError
 from ptovs.field.relevancy import threshold
-from ptovs.stage import RunContext, chain_options
+from ptovs.options import chain_options
 
 
 def sample_views(scene, n: int, seed: int, which: str = "random") -> list:

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import click
 
+from ptovs.chain import RunContext
 from ptovs.pipeline import scene_folders
-from ptovs.stage import RunContext
 from ptovs.variants import VARIANTS
 
 FAILED_MARKER = "FAILED"
@@ -28,9 +28,10 @@ def collect(
     obj: RunContext, data: Path, variants: tuple[str, ...]
 ) -> tuple[dict, dict]:
     """({variant: {scene: summary or None}}, {scene: failure text})."""
+    from ptovs.chain import Chain
     from ptovs.errors import InputError, MissingInputError
+    from ptovs.locate import resolve_scene
     from ptovs.metrics import read_metrics
-    from ptovs.stage import Chain, resolve_scene
     from ptovs.variants import variant_sets
 
     rows: dict[str, dict] = {v: {} for v in variants}

@@ -38,10 +38,11 @@ import torch
 
 from ptovs.apps import close_inputs
 from ptovs.apps.view_guard import MAX_CLIENTS, is_loopback
+from ptovs.chain import RunContext
 from ptovs.errors import InputError
 from ptovs.field.model import SH_C0
+from ptovs.options import chain_options
 from ptovs.raster import Camera
-from ptovs.stage import RunContext, chain_options
 
 HIGHLIGHT = (1.0, 0.0, 1.0)  # selected Gaussians: magenta, found by the browser test
 NEUTRAL = "neutral (mean of the photos)"
@@ -335,7 +336,7 @@ class ViewSession:
 def ready_chain(obj: RunContext, scene_name, data, variant, sets):
     """The chain, or an InputError naming the command that trains what is missing
     (the viewer never trains: that takes minutes)."""
-    from ptovs.stage import variant_chain
+    from ptovs.options import variant_chain
 
     chain, ref = variant_chain(obj, scene_name, data, variant, sets, until="train-male")
     for stage in chain.closure("train-male"):

@@ -1,7 +1,7 @@
 """Pipeline stages, one module per subcommand, each a leaf.
 
 Stage NAME lives in `ptovs.stages.<name with _ for ->` and is listed, in order, in
-`ptovs.pipeline.PIPELINE` (with `ptovs.stage.STAGE_MODULES`); the CLI imports a module only when
+`ptovs.pipeline.PIPELINE` (with `ptovs.registry.STAGE_MODULES`); the CLI imports a module only when
 its command runs (or for `ptovs status`). A stage module imports the framework
-(`ptovs.stage`) and the shared rooms below it, never another stage or the CLI.
+(`ptovs.stage`, `ptovs.registry`) and the shared modules below them, never another stage or the CLI.
 """

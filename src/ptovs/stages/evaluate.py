@@ -37,7 +37,8 @@ from ptovs.metrics import (
     summarise,
     write_report,
 )
-from ptovs.stage import CommandExtras, scene_input, stage_command, upstream
+from ptovs.registry import scene_input, upstream
+from ptovs.stage import CommandExtras, stage_command
 
 log = logging.getLogger(__name__)
 

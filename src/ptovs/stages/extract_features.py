@@ -31,9 +31,10 @@ import numpy as np
 from ptovs.artifacts import Artifact, json_dataset, read_json_dataset
 from ptovs.encoders import Encoder, get_encoder, prepare_crop
 from ptovs.features import SegmentFeatures, langsplat_suffix, read_langsplat
+from ptovs.registry import scene_input, upstream
 from ptovs.scene import check_size
 from ptovs.segment import Segmenter, check_levels, get_segmenter
-from ptovs.stage import scene_input, stage_command, upstream
+from ptovs.stage import stage_command
 
 log = logging.getLogger(__name__)
 

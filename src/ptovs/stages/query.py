@@ -44,7 +44,8 @@ from ptovs.field.query import (
     resolve_queries,
     resolve_views,
 )
-from ptovs.stage import CommandExtras, scene_input, stage_command, upstream
+from ptovs.registry import scene_input, upstream
+from ptovs.stage import CommandExtras, stage_command
 
 log = logging.getLogger(__name__)
 

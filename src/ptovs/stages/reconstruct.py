@@ -35,8 +35,9 @@ from ptovs.field.render import WildField
 from ptovs.field.train import train, visibility
 from ptovs.raster import VERSION as RASTER_VERSION
 from ptovs.raster import Camera, Gaussians
+from ptovs.registry import scene_input
 from ptovs.scene import PhotoStack, Scene
-from ptovs.stage import scene_input, stage_command
+from ptovs.stage import stage_command
 
 log = logging.getLogger(__name__)
 

@@ -33,7 +33,8 @@ from ptovs.field.appearance import (
 from ptovs.field.render import WildField
 from ptovs.raster import VERSION as RASTER_VERSION
 from ptovs.raster import Camera
-from ptovs.stage import scene_input, stage_command, upstream
+from ptovs.registry import scene_input, upstream
+from ptovs.stage import stage_command
 
 log = logging.getLogger(__name__)
 SELECTIONS = ("quality+diversity", "quality", "diversity", "random")

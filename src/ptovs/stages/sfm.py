@@ -16,7 +16,10 @@ from pathlib import Path
 
 import click
 
-from ptovs.stage import SFM, RunContext, chain_options, pose_photos, scene_source
+from ptovs.chain import RunContext
+from ptovs.locate import pose_photos, scene_source
+from ptovs.options import chain_options
+from ptovs.registry import SFM
 
 
 @click.command(name=SFM, help=__doc__)
@@ -30,7 +33,7 @@ def command(
     force: bool,
 ) -> None:
     from ptovs.config import merge, parse_sets
-    from ptovs.stage import split_sets
+    from ptovs.options import split_sets
 
     name, folder, photos = scene_source(scene_name, data)
     if photos is None:

@@ -46,7 +46,8 @@ from tqdm import tqdm
 
 from ptovs.artifacts import Artifact, Checkpoint, json_dataset, read_json_dataset
 from ptovs.nets.autoencoder import LanguageAE
-from ptovs.stage import stage_command, upstream
+from ptovs.registry import upstream
+from ptovs.stage import stage_command
 
 log = logging.getLogger(__name__)
 

@@ -61,18 +61,19 @@ from ptovs.field.language import (
     MaleConfig,
     ViewStore,
     evaluate_loss,
-    feature_lift_sums,
     mask_weights,
     normalize_chunks,
     prepare_view,
     train_male,
     untrained,
 )
+from ptovs.field.lift import feature_lift_sums
 from ptovs.field.render import WildField
 from ptovs.memory import release
 from ptovs.nets.autoencoder import load_autoencoder
 from ptovs.raster import Camera, Gaussians, blend_weights
-from ptovs.stage import scene_input, stage_command, upstream
+from ptovs.registry import scene_input, upstream
+from ptovs.stage import stage_command
 
 log = logging.getLogger(__name__)
 

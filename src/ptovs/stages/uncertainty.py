@@ -32,7 +32,8 @@ import numpy as np
 
 from ptovs.artifacts import Artifact, Checkpoint, json_dataset
 from ptovs.features import SegmentFeatures, view_apps
-from ptovs.stage import stage_command, upstream
+from ptovs.registry import upstream
+from ptovs.stage import stage_command
 
 log = logging.getLogger(__name__)
 

@@ -1,0 +1,123 @@
+"""Content keys: what an artifact's key is made of.
+
+`artifact_key` hashes a stage's name, VERSION, canonical config
+(`ptovs.config.canonical_json`) and upstream keys; a scene's key covers its
+files through `fingerprint_files`, whose per-file digests are cached in the work
+dir by (size, mtime). Under `read_only()` (`ptovs status`, the preflight checks)
+nothing is written, that cache included: what was hashed is kept in memory until
+`flush_fingerprints`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import hashlib
+import json
+from collections.abc import Iterable, Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+from ptovs.atomic import atomic_file
+from ptovs.config import canonical_json
+
+
+def artifact_key(
+    stage: str, version: int, config: Any, inputs: Mapping[str, str]
+) -> str:
+    """sha256 of stage name, stage VERSION, canonical config and upstream keys.
+
+    Args:
+        stage: stage name (`"uncertainty"`).
+        version: the stage's VERSION (plus the rasterizer's, for rendering stages,
+            folded in by the caller through `config` or `inputs`).
+        config: the stage's config dataclass or a plain mapping.
+        inputs: {input name: upstream key}.
+
+    Returns:
+        64 hex characters.
+    """
+    payload = dict(stage=stage, version=version, config=config, inputs=dict(inputs))
+    return hashlib.sha256(canonical_json(payload).encode()).hexdigest()
+
+
+# set by read-only commands (`ptovs status`): nothing may be written, caches included
+READ_ONLY: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "ptovs_read_only", default=False
+)
+
+
+_PENDING: dict[Path, dict] = {}  # fingerprint caches computed while read-only
+
+
+@contextlib.contextmanager
+def read_only() -> Iterator[None]:
+    """Within: nothing is written, the fingerprint cache included (it is kept in
+    memory until `flush_fingerprints`)."""
+    token = READ_ONLY.set(True)
+    try:
+        yield
+    finally:
+        READ_ONLY.reset(token)
+
+
+def _write_fingerprints(cache: Path, memo: dict) -> None:
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_file(cache, keep_suffix=False) as tmp:
+        tmp.write_text(json.dumps(memo))
+
+
+def flush_fingerprints(write: bool = True) -> None:
+    """Write (or, `write=False`, drop) the fingerprint caches computed while
+    read-only: a preflight that passes keeps its hashing, one that fails leaves
+    the work dir as it was."""
+    pending = dict(_PENDING)
+    _PENDING.clear()
+    if write:
+        for cache, memo in pending.items():
+            _write_fingerprints(cache, memo)
+
+
+def fingerprint_files(files: Iterable[Path], root: Path, cache: Path | None) -> str:
+    """sha256 over (relative path, content sha256) of every file.
+
+    File digests are cached by (size, mtime_ns), so a 3,000-image scene is hashed
+    once; a file touched or replaced is hashed again.
+    """
+    root = Path(root).resolve()
+    memo: dict[str, list[Any]] = {}
+    if cache is not None and cache.is_file():
+        try:
+            memo = json.loads(cache.read_text())
+        except (OSError, ValueError):
+            memo = {}
+    if cache is not None and cache in _PENDING:  # hashed earlier in this process
+        memo.update(_PENDING[cache])
+    records, changed = [], False
+    for path in sorted(Path(p).resolve() for p in files):
+        st = path.stat()
+        try:
+            rel = path.relative_to(root).as_posix()
+        except ValueError:  # e.g. labels beside the scene folder
+            rel = path.relative_to(root.parent).as_posix()
+        hit = memo.get(str(path))
+        if hit and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
+            digest = hit[2]
+        else:
+            h = hashlib.sha256()
+            with path.open("rb") as fh:
+                for block in iter(lambda: fh.read(1 << 20), b""):
+                    h.update(block)
+            digest = h.hexdigest()
+            memo[str(path)] = [st.st_size, st.st_mtime_ns, digest]
+            changed = True
+        records.append(f"{rel}:{digest}")
+    if cache is not None and cache in _PENDING and not READ_ONLY.get():
+        changed = True  # hashed while read-only: now it may be written
+    if cache is not None and changed:
+        if READ_ONLY.get():
+            _PENDING[cache] = memo  # written by flush_fingerprints, if ever
+        else:
+            _write_fingerprints(cache, memo)
+            _PENDING.pop(cache, None)
+    return hashlib.sha256("\n".join(records).encode()).hexdigest()
