@@ -11,7 +11,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ptovs.segment import Level, check_levels
+from ptovs.segment.levels import Level, check_levels
 
 GRAPH_K = {"default": 100.0, "s": 300.0, "m": 1000.0, "l": 3000.0}
 REF_AREA = 512 * 384

@@ -32,8 +32,8 @@ import heapq
 import cv2
 import numpy as np
 
-from ptovs.segment import Level, check_levels
 from ptovs.segment.graph import check_image, require_ximgproc
+from ptovs.segment.levels import Level, check_levels
 
 REF_AREA = 512 * 384
 HIER_THRESHOLDS = {"default": 20.0, "s": 8.0, "m": 20.0, "l": 45.0}  # chosen on dev

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from ptovs.compat import import_backend
-from ptovs.segment import Level, check_levels
+from ptovs.segment.levels import Level, check_levels
 from ptovs.segment.masks import box_nms, mask_nms, paint
 
 log = logging.getLogger(__name__)

@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from ptovs.errors import InputError
-from ptovs.segment import Level, check_levels
+from ptovs.segment.levels import Level, check_levels
 
 SKY, GROUND = -1, -2
 
