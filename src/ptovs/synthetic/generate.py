@@ -445,9 +445,8 @@ def scene_vocabulary(
 ) -> dict:
     """The stand-in encoder's vocabulary: phrase -> canonical swatch description.
 
-    `standin` 2 to 5 (issue 41) add what those versions of the stand-in
-    render their text side from: the world ("world") and each part phrase's part
-    ids ("parts")."""
+    `standin` 5 adds what that version of the stand-in renders its text side
+    from: the world ("world") and each part phrase's part ids ("parts")."""
     from ptovs.encoders.synthetic import generic_vocabulary
 
     phrases: dict[str, dict] = {}
@@ -482,7 +481,7 @@ def scene_vocabulary(
         "phrases": phrases,
         "generic": generic_vocabulary(sky=phrases["sky"], ground=ground),
     }
-    if standin in (2, 3, 4, 5):
+    if standin == 5:
         parts: dict[str, list[int]] = {}
         for part in world.parts:
             parts.setdefault(part.query, []).append(part.id)
@@ -492,7 +491,7 @@ def scene_vocabulary(
                 parts.setdefault(name, []).append(part.id)
         out.update(version=standin, world=world.to_dict(), parts=parts)
     elif standin != 1:
-        raise ValueError(f"standin must be 1, 2, 3, 4 or 5, got {standin!r}")
+        raise ValueError(f"standin must be 1 or 5, got {standin!r}")
     return out
 
 
@@ -668,6 +667,11 @@ def plan_scene(preset: str, seed: int, standin: int = 1, extra: int = 0) -> Scen
     """
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose from {sorted(PRESETS)}")
+    if standin not in (1, 5):
+        raise ValueError(
+            f"stand-in version {standin!r} is not available (only 1 and 5 are); "
+            "use standin=1 or standin=5"
+        )
     cfg = PRESETS[preset]
     world = _world(cfg, seed)
     n_img = cfg.n_train + cfg.n_test
@@ -711,8 +715,7 @@ def plan_scene(preset: str, seed: int, standin: int = 1, extra: int = 0) -> Scen
         eval_cams,
         truths,
         labelled,
-        # versions 4 and 5 read version 3's worlds: the same screen, the same photos
-        lambda w: scene_vocabulary(w, cfg, [], 3 if standin in (4, 5) else standin),
+        lambda w: scene_vocabulary(w, cfg, [], standin),
         label_mask,
     )
     queries = {p.query: [p.id] for p in world.parts if verdict[p.id].answerable}
@@ -861,10 +864,9 @@ def generate_scene(
         name: scene folder name; default f"{preset}_s{seed}".
         progress: show a tqdm bar over images.
         standin: the version of the stand-in for CLIP the scene is written for
-            (1: the world of issues 1-40; 2: issue 41's, calibrated against
-            CLIP's published failure profile). It decides the screen's verdicts
-            (so the textures) and the vocabulary; cameras and appearances are
-            the same.
+            (1: the original; 5: calibrated against CLIP's published failure
+            profile). It decides the screen's verdicts (so the textures) and the
+            vocabulary; cameras and appearances are the same.
 
     Returns:
         The scene directory out/<name>.
