@@ -33,7 +33,7 @@ import numpy as np
 from ptovs.encoders import prepare_crop
 from ptovs.encoders.synthetic import SyntheticEncoder
 from ptovs.synthetic import generate as G
-from ptovs.synthetic.world import render, sample_appearance
+from ptovs.synthetic.world import part_swatch, render, sample_appearance
 
 
 def mixture_look(world, preset) -> list[dict]:
@@ -41,7 +41,7 @@ def mixture_look(world, preset) -> list[dict]:
     w = np.array([p.size**2 for p in world.parts], float)
     w = w / w.sum()
     return [
-        {"weight": float(wi), "swatch": G.part_swatch(world, p, preset.swatch_px)}
+        {"weight": float(wi), "swatch": part_swatch(world, p, preset.swatch_px)}
         for wi, p in zip(w, world.parts, strict=True)
     ]
 

@@ -1,4 +1,4 @@
-"""Amendment 9's low-contrast rows (bench/standin_profile.py) and the spread of real
+"""The profile's low-contrast rows (bench/standin_profile.py) and the spread of real
 photos they are matched to (tools/real_spread.py): a part blended by
 `level_contrast` keeps the grey levels a whole photograph of the real photos' spread
 keeps at the nominal contrast, whatever its own spread; flat parts and huge spreads

@@ -1,4 +1,4 @@
-"""Answerable queries: the generator's screen of every query part (issue 20).
+"""Answerable queries: the generator's screen of every query part.
 
 A query is answerable when its phrase, on clean crops of its own part, wins the
 pipeline's relevancy rule against every negative phrase the pipeline compares it
