@@ -1,7 +1,7 @@
 """Where the field loses on truth segments: the 3-d code (issue 41, amendment 5).
 
-    python bench/ae_probe.py --data data/accuracy-v3-1x --work work/accuracy-v3-1x \\
-        --preset small --standin 3 --seeds 160-168          # after the truth chains
+    python bench/ae_probe.py --data data/accuracy-v5 --work work/accuracy-v5 \\
+        --preset small --standin 5 --seeds 220-228          # after the truth chains
     python bench/ae_probe.py --data DIR --work DIR --preset small --standin 1 \\
         --seeds 0 --no-ae                                   # another world, PCA only
 

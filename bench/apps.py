@@ -116,10 +116,9 @@ def raw_style_votes(scene: Path, names: list[str]) -> dict:
     the style text with the highest cosine."""
     import cv2
 
-    from ptovs.encoders import prepare_crop
-    from ptovs.encoders.synthetic import SyntheticEncoder
+    from ptovs.encoders import prepare_crop, scene_encoder
 
-    enc = SyntheticEncoder.from_scene(scene)
+    enc = scene_encoder(scene)
     text = enc.encode_texts(enc.styles)
     votes = {
         "whole": dict.fromkeys(enc.styles, 0),

@@ -86,9 +86,9 @@ def main() -> None:
         sys.exit("no chromium: apt-get install chromium")
     phrases = args.phrases
     if phrases is None:
-        from ptovs.encoders.synthetic import SyntheticEncoder
+        from ptovs.encoders import scene_encoder
 
-        phrases = list(SyntheticEncoder.from_scene(args.data).phrases)[:4]
+        phrases = list(scene_encoder(args.data).phrases)[:4]
     port = free_port()
     cmd = [sys.executable, "-m", "ptovs", "--work-dir", str(args.work)]
     cmd += [f"--set={s}" for s in args.sets]
