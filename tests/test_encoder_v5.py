@@ -3,8 +3,10 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 from dataclasses import replace
+from pathlib import Path
 from types import SimpleNamespace
 
 import cv2
@@ -55,18 +57,15 @@ def _clean(scene) -> list[np.ndarray]:
     return [c for c in crops if (c.max(axis=2) > 0).mean() > 0.2][:6]
 
 
-def _striped_part(contrast: float, side: int = 40, seed: int = 0) -> np.ndarray:
-    """A crop as the pipeline cuts it: a textured disc of `side` px in a 160-px
-    photo (stripes and noise about mid grey, blended to grey at `contrast`, kept
-    in floating point), black outside the mask, resized up to 224 px."""
-    rng = np.random.default_rng(seed)
-    yy, xx = np.mgrid[0:160, 0:160]
-    lum = 0.5 + 0.2 * np.sin(2 * np.pi * (xx + 0.6 * yy) / 7.0)
-    lum = lum + 0.05 * rng.standard_normal(lum.shape)
-    rgb = np.stack([lum * 1.1, lum, lum * 0.8], -1).clip(0, 1)
-    img = (0.5 + contrast * (rgb - 0.5)).astype(np.float32)
-    mask = (yy - 80) ** 2 + (xx - 80) ** 2 <= (side // 2) ** 2
-    return prepare_crop(img, mask)
+def _tool():
+    path = Path(__file__).resolve().parents[1] / "tools" / "standin_reference.py"
+    spec = importlib.util.spec_from_file_location("standin_reference", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+_striped_part = _tool().striped_part  # a striped disc cut as a segment crop
 
 
 def test_projection_is_verified_on_read(monkeypatch) -> None:

@@ -29,9 +29,10 @@ AZIMUTHS = (-60.0, 0.0, 45.0)
 PHRASES = ("building", "object", "sky", "ground", "no such phrase")
 
 
-def _striped(contrast: float, side: int, seed: int) -> np.ndarray:
-    """A textured disc of `side` px in a 160-px photo, blended to grey at
-    `contrast`, cut as a segment crop."""
+def striped_part(contrast: float, side: int = 40, seed: int = 0) -> np.ndarray:
+    """A crop as the pipeline cuts it: a textured disc of `side` px in a 160-px
+    photo (stripes and noise about mid grey, blended to grey at `contrast`, kept
+    in floating point), black outside the mask, resized up to 224 px."""
     from ptovs.crop import prepare_crop
 
     rng = np.random.default_rng(seed)
@@ -69,7 +70,7 @@ def inputs() -> tuple[dict, np.ndarray, list[str]]:
     for k, (c, s) in enumerate(
         [(1.0, 40), (0.2, 40), (0.05, 40), (0.03, 24), (1.0, 90)]
     ):
-        crops.append(_striped(c, s, k))
+        crops.append(striped_part(c, s, k))
     phrases = sorted(vocab["parts"]) + list(PHRASES)
     return vocab, np.stack(crops), phrases
 
