@@ -224,6 +224,25 @@ def test_chroma_decoupling_sees_jpeg_and_noise(scene) -> None:
     assert st._key(c0) != st._key(np.clip(c0 * 0.7, 0, 1))
 
 
+def test_colour_is_a_weak_cue(scene) -> None:
+    """Greyscale moves a crop's embedding less than a strong blur does (CLIP's
+    order)."""
+    crops = np.stack([c for (_, _, j), c in scene[2] if j == 0][:8])
+    grey = crops.mean(axis=3, keepdims=True).repeat(3, axis=3)
+    grey[crops.max(axis=3) == 0] = 0
+    blur = np.stack(
+        [
+            cv2.GaussianBlur(c, (0, 0), 6.0) * (c.max(axis=2, keepdims=True) > 0)
+            for c in crops
+        ]
+    ).astype(np.float32)
+    enc = v5.SyntheticEncoderV5()
+    a = enc.encode_images(crops)
+    d_grey = 1 - (a * enc.encode_images(grey)).sum(1)
+    d_blur = 1 - (a * enc.encode_images(np.clip(blur, 0, 1))).sum(1)
+    assert d_grey.mean() < d_blur.mean(), (d_grey.mean(), d_blur.mean())
+
+
 def test_crops_of_a_part_cluster_more_than_in_the_plain_reading(scene) -> None:
     """The point of the learnt projection: across cameras and lights, a part's
     crops lie closer together, relative to the distance between parts, than in
