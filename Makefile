@@ -6,10 +6,7 @@
 #                      then bench-growth (and bench-peers given OPENSPLAT_SRC)
 #   make bench-accuracy  the accuracy instrument: 18 seeds, every variant, CIs (~2 h)
 #   make bench-standin   the stand-in's failure profile against CLIP's (calibration seeds)
-#   make bench-multiapp  the paper's multi-appearance claim in stand-in 2's world (fresh seeds)
-#   make bench-multiapp-3x  the same at stand-in 2's calibration photo size (3x small)
-#   make bench-multiapp-v3  the same size in stand-in 3's world (fresh seeds)
-#   make bench-multiapp-truth  stand-in 3, truth segments, small (amendment 5)
+#   make bench-multiapp  the paper's multi-appearance claim in stand-in 5's world (fresh seeds)
 #   make bench-growth  each stage's time, memory and quality at 100-763 photos (landmark)
 #   make bench-peers OPENSPLAT_SRC=DIR  reconstruct beside OpenSplat --cpu (a clone you give)
 #   make -j3 all       every scene under DATA in parallel, stages in order, then the
@@ -62,7 +59,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # column, a tiled roof; what it selects is in docs/results.md, "The demo")
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo view test system-deps test-slurm lint format bench bench-accuracy bench-standin bench-multiapp bench-multiapp-3x bench-multiapp-v3 bench-multiapp-truth bench-multiapp-v4 bench-multiapp-v5 bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
+.PHONY: setup demo view test system-deps test-slurm lint format bench bench-accuracy bench-standin bench-multiapp bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
 
 # where torch and torchvision come from: PyTorch's CPU index by default (PyPI's Linux
 # torch is the CUDA build, several GB); with an NVIDIA GPU give its CUDA index, e.g.
@@ -161,74 +158,25 @@ bench-accuracy: setup
 	$(BIN)/python bench/select3d.py --seeds 9-17 --data $(QDATA)/accuracy --work $(QWORK)/accuracy
 	$(BIN)/python bench/style_seeds.py --seeds $(ACC_SEEDS) --data $(QDATA)/accuracy --work $(QWORK)/accuracy
 
-# the stand-in encoder's failure profile against CLIP's (issue 41): calibration
-# seeds only, crops only, no method measured
-STANDIN_VERSION ?= 2
+# the stand-in encoder's failure profile against CLIP's: calibration seeds only,
+# crops only, no method measured (STANDIN_VERSION=1 for the original stand-in)
+STANDIN_VERSION ?= 5
 bench-standin: setup
 	$(BIN)/python bench/standin_profile.py --seeds 300-305 --jobs 2 --version $(STANDIN_VERSION) \
 	  --out $(QWORK)/standin/profile_v$(STANDIN_VERSION).json
 
-# the paper's multi-appearance claim (Table 3 row 1) judged in the world of stand-in 2
-# (issue 41), on fresh seeds in their own folders: dev 100-108, test 109-117.
-# MULTIAPP_LABELS adds Table 4's rows and the normalised ε_q (same-appearance
-# select-quality select-diversity select-random quality-l1-relative quality-dssim)
-MULTIAPP_LABELS ?= male no-multi-appearance langsplat 2d ideal-novel
+# the paper's multi-appearance claim judged in the world of stand-in 5 on truth
+# segments, fresh seeds dev 220-228, test 229-246, differences paired against
+# male-truth: the front end first (MULTIAPP_LABELS=2d-truth MULTIAPP_SEEDS=220-228),
+# then pass 1 (the default), then Table 4
+# (MULTIAPP_LABELS="same-appearance-truth select-random-truth")
+MULTIAPP_LABELS ?= 2d-truth male-truth no-multi-appearance-truth langsplat-truth
+MULTIAPP_SEEDS ?= 220-246
+MULTIAPP_DEV ?= 220-228
 bench-multiapp: setup
-	$(BIN)/python bench/accuracy.py --preset small --standin 2 --seeds 100-117 --dev 100-108 \
-	  --data $(QDATA)/accuracy-v2 --work $(QWORK)/accuracy-v2 --labels $(MULTIAPP_LABELS)
-
-# the same at the photo size stand-in 2 was calibrated at (issue 41, amendment 3):
-# small's scenes at 3x the side, fresh seeds dev 120-128, test 129-137. The front
-# end alone (MULTIAPP3X_LABELS=2d 2d-best 2d-truth) takes about 50 min; each chain
-# label costs many times that (docs/benchmarks.md, "The instrument at the
-# calibration's photo size"). Resumes where a killed run stopped.
-MULTIAPP3X_LABELS ?= 2d 2d-best 2d-truth
-bench-multiapp-3x: setup
-	$(BIN)/python bench/accuracy.py --preset small-3x --standin 2 --seeds 120-137 --dev 120-128 \
-	  --data $(QDATA)/accuracy-3x --work $(QWORK)/accuracy-3x --labels $(MULTIAPP3X_LABELS)
-
-# stand-in 3 (issue 41, amendment 4: "building" as the average of the part phrases),
-# at the same photo size, fresh seeds dev 140-148, test 149-157, front end first
-MULTIAPPV3_LABELS ?= 2d 2d-best 2d-truth
-bench-multiapp-v3: setup
-	$(BIN)/python bench/accuracy.py --preset small-3x --standin 3 --seeds 140-157 --dev 140-148 \
-	  --data $(QDATA)/accuracy-v3 --work $(QWORK)/accuracy-v3 --labels $(MULTIAPPV3_LABELS)
-
-# issue 41, amendment 5: the method on truth segments in stand-in 3's world at small's
-# size, fresh seeds dev 160-168, test 169-177; differences paired against male-truth.
-# The front end first (MULTIAPPTRUTH_LABELS=2d-truth 2d on the dev seeds), then pass 1
-# (the default), then Table 4 (add same-appearance-truth select-random-truth)
-MULTIAPPTRUTH_LABELS ?= 2d-truth 2d male-truth no-multi-appearance-truth langsplat-truth
-bench-multiapp-truth: setup
-	$(BIN)/python bench/accuracy.py --preset small --standin 3 --seeds 160-177 --dev 160-168 \
-	  --data $(QDATA)/accuracy-v3-1x --work $(QWORK)/accuracy-v3-1x \
-	  --labels $(MULTIAPPTRUTH_LABELS) --base male-truth
-
-# issue 41, amendment 7: the same in stand-in 4's world (a learnt invariance), fresh
-# seeds dev 180-188, test 189-197; pass 1 (the default), then Table 4 (add
-# same-appearance-truth select-random-truth), then the pipeline's own segments
-# (MULTIAPPV4_LABELS=male no-multi-appearance langsplat)
-# Amendment 8, its replication on fresh seeds, all of them test (nothing is chosen):
-# MULTIAPPV4_SEEDS=198-215 MULTIAPPV4_DEV=999 (999: no seed of the list is dev)
-MULTIAPPV4_LABELS ?= 2d-truth 2d male-truth no-multi-appearance-truth langsplat-truth
-MULTIAPPV4_SEEDS ?= 180-197
-MULTIAPPV4_DEV ?= 180-188
-bench-multiapp-v4: setup
-	$(BIN)/python bench/accuracy.py --preset small --standin 4 --seeds $(MULTIAPPV4_SEEDS) --dev $(MULTIAPPV4_DEV) \
-	  --data $(QDATA)/accuracy-v4 --work $(QWORK)/accuracy-v4 \
-	  --labels $(MULTIAPPV4_LABELS) --base male-truth
-
-# issue 41, amendment 10: the same in stand-in 5's world (version 4 reading the part
-# inside its crop's dark rim), fresh seeds dev 220-228, test 229-246; the front end
-# first (MULTIAPPV5_LABELS=2d-truth MULTIAPPV5_SEEDS=220-228), then pass 1 (the
-# default), then Table 4 (MULTIAPPV5_LABELS="same-appearance-truth select-random-truth")
-MULTIAPPV5_LABELS ?= 2d-truth male-truth no-multi-appearance-truth langsplat-truth
-MULTIAPPV5_SEEDS ?= 220-246
-MULTIAPPV5_DEV ?= 220-228
-bench-multiapp-v5: setup
-	$(BIN)/python bench/accuracy.py --preset small --standin 5 --seeds $(MULTIAPPV5_SEEDS) --dev $(MULTIAPPV5_DEV) \
+	$(BIN)/python bench/accuracy.py --preset small --standin 5 --seeds $(MULTIAPP_SEEDS) --dev $(MULTIAPP_DEV) \
 	  --data $(QDATA)/accuracy-v5 --work $(QWORK)/accuracy-v5 \
-	  --labels $(MULTIAPPV5_LABELS) --base male-truth
+	  --labels $(MULTIAPP_LABELS) --base male-truth
 
 # how each stage's time, peak RSS and output quality grow with the collection: the
 # landmark world at 100, 200, 400 and 763 photos, one size at a time, the default

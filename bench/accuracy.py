@@ -1,4 +1,4 @@
-"""Accuracy benchmark v2 (issue 20): an instrument that can see a 0.05 mIoU difference.
+"""The accuracy instrument: it can see a 0.05 mIoU difference.
 
     make bench-accuracy                                   # what docs/benchmarks.md reports
     python bench/accuracy.py --preset small --seeds 0-17  # the same, by hand
@@ -7,68 +7,58 @@
         --data data/accuracy-bench --work work/accuracy-bench           # the ranking check:
     python bench/accuracy.py --preset small --seeds 0-2 --dev 0-2 --report-only \\
         --data data/accuracy --work work/accuracy --compare work/accuracy-bench
+    make bench-multiapp                                   # in stand-in 5's world (--standin 5)
 
-Every seed is a new synthetic landmark (`ptovs synth-scene`): every part labelled in
-its evaluation views is a query unless the generator's screen finds its phrase
-unanswerable (`ptovs.synthetic.screen`). Per seed, in a subprocess of its own (two
-at a time on two cores, one thread each), the instrument measures, on every
-(evaluation view, query) pair:
+Every seed is a new synthetic landmark (`ptovs synth-scene`, written for the
+stand-in `--standin`): every part labelled in its evaluation views is a query
+unless the generator's screen finds its phrase unanswerable
+(`ptovs.synthetic.screen`). Per seed, in a subprocess of its own (two at a time
+on two cores, one thread each), the instrument measures, on every (evaluation
+view, query) pair:
 
   male                the full method (ptovs defaults: the paper's method with the
-                      authors' code's AE weighting and the training-free lift in
-                      train-male, both chosen on these seeds, issue 22)
+                      authors' code's AE weighting and the training-free lift)
   optimise            the same with train-male's optimiser (`--variant optimise`)
-  paper               the paper's text exactly (`--variant paper`: the optimiser,
-                      the AE trained on p·x; the default before issue 22)
+  paper               the paper's text exactly (`--variant paper`)
   langsplat           LangSplat's recipe on plain-3DGS geometry
   langsplat-wild      the same recipe on the in-the-wild geometry
   oracle              the full method's language recipe on clean features: every
                       photo re-rendered at its camera under neutral light without
-                      occluders (4:4:4 JPEG, same size), its features imported in
-                      every appearance slot (with U_T = U_A = 0 the full recipe
-                      then equals LangSplat's: both gave identical pairs on all
-                      18 seeds)
+                      occluders, its features imported in every appearance slot
   2d                  2-D ceiling: the pipeline's relevancy on the raw 512-d segment
                       features of the evaluation photo itself (no field, no AE)
   2d-ae               the same features through the full method's autoencoder
   2d-nosmooth         2d without the query's mean and majority filters
-  2d-best             the best union of the pipeline's segments per query (the
-                      segments in order of their share inside the truth mask, the
-                      best prefix, best level): no classifier error
+  2d-best             the best union of the pipeline's segments per query (best
+                      prefix by share inside the truth mask, best level)
   2d-truth            2d on the truth part masks' features (`segmenter = "truth"`)
   slot-orig, slot-nov1..3   the full method's field, one appearance slot alone
   no-multi-appearance, no-tum-aum, no-tum, no-aum, no-bg-filter, imglvlmax,
   pixmax, pixavg, pixweighted   Table 3 rows 1 and 6-13 (ptovs.variants)
   budget-300, budget-3k         train-male's optimiser at two fixed iteration budgets
-  no-uncertainty-ae, lift-codes   on request only (--labels): Table 3 row 3
-                      (train-ae unweighted), the code-space lift (each Gaussian's
-                      mean target code)
-  ideal-novel         on request only: the full method with the photos' own
-                      features in the original slot and clean features (the
-                      oracle's) in the novel slots: the headroom of the
-                      multi-appearance features (issue 41)
-  on request only (--labels; `make bench-upstream` on the test seeds):
-  2d-old              2d as before issue 40 (graph segments, fixed 20/7 px filters)
-  male-old            the full method with those defaults
+  on request only (--labels):
+  no-uncertainty-ae, lift-codes   Table 3 row 3 (train-ae unweighted), the
+                      code-space lift (each Gaussian's mean target code)
+  ideal-novel         the photos' own features in the original slot and clean
+                      ones in the novel slots: the multi-appearance headroom
+  2d-old, male-old    the old front end (graph segments, fixed 20/7 px filters)
   male-truth, langsplat-truth, no-multi-appearance-truth   Table 3 rows with the
                       truth part masks as segments (the paper's SAM setting's bound)
-  same-appearance-truth, select-random-truth   Table 4 on truth segments: male-truth
-                      with the view's own features in every novel slot, or with
-                      targets drawn without ε_q and ε_d (compare with --base
-                      male-truth)
+  same-appearance-truth, select-random-truth   Table 4 on truth segments (compare
+                      with --base male-truth); same-appearance, select-quality,
+                      select-diversity, select-random, quality-l1-relative,
+                      quality-dssim: target selection on the pipeline's segments
 
 A finished seed's pairs go to <work>/results/<scene>.json (atomically), each label
-with the artifact key of what it measured (the evaluate artifact's; for 2d/2d-ae the
-features' and the AE's). A rerun drops every label whose key the code or config no
-longer gives (a changed default, a new stage version) and computes the missing ones;
-an interrupted seed resumes from the artifact cache (every stage is cached; the
-training stages checkpoint), so an unchanged label costs a cache lookup.
+with the artifact key of what it measured. A rerun drops every label whose key the
+code or config no longer gives and computes the missing ones; an interrupted seed
+resumes from the artifact cache, so an unchanged label costs a cache lookup.
 
-The report treats each (seed, query) as one cluster (its pairs share the landmark,
-the part and the field): mIoU is the mean of cluster means; a comparison with the
-full method is the mean paired per-cluster difference with a 95 % cluster-bootstrap
-interval (`ptovs.stats`). Seeds are split into a fixed dev half (the first half of
-the list: for choosing anything) and a test half (for reporting only).
+The report treats each (seed, query) as one cluster: mIoU is the mean of cluster
+means; a comparison with the full method is the mean paired per-cluster
+difference with a 95 % cluster-bootstrap interval (`ptovs.stats`). Seeds are split
+into a fixed dev half (the first half of the list: for choosing anything) and a
+test half (for reporting only).
 """
 
 from __future__ import annotations
@@ -153,9 +143,8 @@ CHAIN_LABELS.update({
     for k in ("same-appearance", "select-random")
 })  # fmt: skip
 # measured only when asked for (--labels), kept out of the default run so that
-# `make bench-accuracy` stays within its time: candidates for issue 22's fixes, and
-# the one-off comparisons of issue 40 (the old front end; Table 3 rows under truth
-# segments: `make bench-upstream`)
+# `make bench-accuracy` stays within its time: the old front end and Table 3 and 4
+# rows under truth segments (`make bench-upstream`, `make bench-multiapp`)
 UPSTREAM_LABELS = (
     "2d-old",
     "male-old",
@@ -165,7 +154,7 @@ UPSTREAM_LABELS = (
     "same-appearance-truth",
     "select-random-truth",
 )
-# issue 41's target selection (Table 4 and the normalised ε_q): `make bench-targets`
+# target selection on the pipeline's segments (Table 4 and the normalised ε_q)
 TARGET_LABELS = (
     "same-appearance",
     "select-quality",
@@ -417,13 +406,13 @@ def phrase_table(sc):
     indices, background indices)."""
     import torch
 
-    from ptovs.encoders.synthetic import SyntheticEncoder
+    from ptovs.encoders import scene_encoder
     from ptovs.field.relevancy import BACKGROUND_PHRASES, CANONICAL
     from ptovs.scene import load_labels
 
     queries = sorted({q for v in sc.labelled_views() for q in load_labels(sc, v)})
     phrases = list(dict.fromkeys([*queries, *CANONICAL, *BACKGROUND_PHRASES]))
-    emb = torch.from_numpy(SyntheticEncoder.from_scene(sc.root).encode_texts(phrases))
+    emb = torch.from_numpy(scene_encoder(sc.root).encode_texts(phrases))
     idx = {p: i for i, p in enumerate(phrases)}
     return emb, idx, [idx[p] for p in CANONICAL], [idx[p] for p in BACKGROUND_PHRASES]
 
@@ -1097,9 +1086,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--labels", nargs="+", default=list(LABELS), choices=ALL_LABELS)
     ap.add_argument("--config", type=Path, default=ROOT / "configs" / "accuracy.toml")
     ap.add_argument("--data", type=Path, default=ROOT / "data" / "accuracy")
-    ap.add_argument("--standin", type=int, default=1, choices=(1, 2, 3, 4, 5),
-                    help="the stand-in for CLIP the scenes are made for (issue 41: "
-                         "2 or 3, each with its own --data and --work)")  # fmt: skip
+    ap.add_argument("--standin", type=int, default=1, choices=(1, 5),
+                    help="the stand-in for CLIP the scenes are made for (5: with its "
+                         "own --data and --work)")  # fmt: skip
     ap.add_argument("--work", type=Path, default=ROOT / "work" / "accuracy")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--threads", type=int, default=1, help=argparse.SUPPRESS)

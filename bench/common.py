@@ -110,18 +110,6 @@ def seed_list(items: list[str]) -> list[int]:
     return list(dict.fromkeys(out))
 
 
-def probe_parser(doc: str, preset: str) -> argparse.ArgumentParser:
-    """The arguments of the dev diagnostics that read the instrument's scenes and
-    artifacts (bench/level_probe.py); `--seeds` takes ranges."""
-    ap = argparse.ArgumentParser(description=doc.split("\n")[0])
-    ap.add_argument("--data", type=Path, required=True)
-    ap.add_argument("--work", type=Path, required=True)
-    ap.add_argument("--preset", default=preset)
-    ap.add_argument("--standin", type=int, default=3, choices=(1, 2, 3, 4, 5))
-    ap.add_argument("--seeds", nargs="+", required=True, help="seeds or ranges (0-8)")
-    return ap
-
-
 def instrument_chain(scene: Path, work: Path, config: Path, variant: str = "male"):
     """The accuracy instrument's chain of `variant` on `scene` (bench/accuracy.py's
     layout: artifacts under <work>/runs, its config file). Its keys say whether a

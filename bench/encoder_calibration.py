@@ -1,7 +1,7 @@
 """Calibration of the stand-in encoder on `bench` scenes (docs/standin.md).
 
 Closed set: each part crop (LangSplat recipe, truth part mask) is assigned the
-part whose query phrase has the highest text similarity. Open set (issue 20): the
+part whose query phrase has the highest text similarity. Open set: the
 share of crops on which the part's own phrase wins the pipeline's relevancy rule
 against every negative phrase (the canonical and background phrases), and the
 share that wins by the generator screen's margin (`ptovs.synthetic.screen`). Four
@@ -27,8 +27,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ptovs.encoders import prepare_crop
-from ptovs.encoders.synthetic import SyntheticEncoder
+from ptovs.encoders import prepare_crop, scene_encoder
 from ptovs.synthetic import generate_scene
 from ptovs.synthetic.generate import load_truth, rerender
 from ptovs.synthetic.screen import MARGIN, NEGATIVES
@@ -60,7 +59,7 @@ def _part_crops(
 def calibrate(scene: Path, n_views: int, seed: int) -> dict[str, dict]:
     """Accuracy per crop set on one scene; also crops/s of encode_images."""
     world, cams = load_truth(scene)
-    enc = SyntheticEncoder.from_scene(scene)
+    enc = scene_encoder(scene)
     text = enc.encode_texts([p.query for p in world.parts])  # [P, 512]
     negs = enc.encode_texts(list(NEGATIVES))
     ids = np.array([p.id for p in world.parts])

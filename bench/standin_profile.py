@@ -1,6 +1,7 @@
-"""How the stand-in encoder fails, crop by crop, against CLIP's published profile (issue 41).
+"""How the stand-in encoder fails, crop by crop, against CLIP's published profile.
 
     python bench/standin_profile.py --seeds 300-303 --out work/standin/profile.json
+    make bench-standin                     # version 5; STANDIN_VERSION=1 for version 1
 
 Calibration only: crops of the labelled parts (truth masks, cut as the pipeline cuts
 a segment: `ptovs.crop.prepare_crop`), classified closed-set among the scene's part
@@ -26,7 +27,7 @@ and the clean render is degraded as the published studies degrade images:
 
   contrast-5, contrast-3   the photo blended to mid grey at 5 % / 3 % contrast
                            (model-vs-human), 8-bit
-  contrast-5-levels, contrast-3-levels   (amendment 9) per part, the photo blended
+  contrast-5-levels, contrast-3-levels   per part, the photo blended
                            so that the part keeps the grey levels a whole real
                            photograph keeps at 5 % / 3 %: contrast c * REAL_SPREAD /
                            the part's own 5-95 % luminance range, at most 1
@@ -42,12 +43,12 @@ shape bias on the conflict crops (decisions for the part's own phrase over
 decisions for the phrase of the texture it wears), the view change (clean crops by
 the camera's azimuth from the landmark's front), and how independent the errors of
 two daylight renders of the same crop are (error lift: P(wrong in B | wrong in A)
-/ P(wrong in B); 1 is independent). On the clean crops, the relevancy rows
-(amendment 4): the pipeline's relevancy (min over its canonical phrases of
+/ P(wrong in B); 1 is independent). On the clean crops, the relevancy rows:
+the pipeline's relevancy (min over its canonical phrases of
 sigmoid(tau (cos q - cos c)), tau = 10) of the crop's own phrase and, per crop, the
 median over the scene's other part phrases; each row is the median over crops.
 
-The scene code (amendment 6): the chain's 512 -> 3 -> 512 autoencoder
+The scene code: the chain's 512 -> 3 -> 512 autoencoder
 (`ptovs.stages.train_ae`, its defaults, no uncertainty weights), trained per seed
 on the crops the scene's ordinary photos give (`CODE_FIT`: whole parts under
 neutral, daylight, night and film light, and the pipeline's pieces), and the
@@ -100,7 +101,7 @@ PHOTO_ROWS = {  # photo-level degradations of the clean render (uint8 RGB)
     "contrast-3": lambda im: _contrast(im, 0.03),
     "jpeg-7": lambda im: _jpeg(im, 7),
 }
-# amendment 9: the median 5-95 % luminance range of whole real photographs at 224 px
+# the median 5-95 % luminance range of whole real photographs at 224 px
 # (`tools/real_spread.py` on the two real photo sets: 19 photos), and the rows that
 # blend each part to the grey levels such a photograph keeps at 5 % / 3 % contrast
 REAL_SPREAD = 0.54
@@ -255,7 +256,7 @@ def collect(
     seed: int,
     n_cams: int,
     scale: int = 3,
-    version: int = 2,
+    version: int = 5,
     preset: str = "small",
     code_only: bool = False,
     levels_only: bool = False,
@@ -263,7 +264,7 @@ def collect(
     """Every row's crops (uint8) and truth labels for one calibration seed, in
     the world the generator makes for stand-in `version` (its screen's textures);
     with `code_only`, the scene code's rows alone (`CODE_FIT`, pieces); with
-    `levels_only`, the clean crops, amendment 9's rows and `LEVELS_ONLY_ROWS` alone."""
+    `levels_only`, the clean crops, the level rows and `LEVELS_ONLY_ROWS` alone."""
     plan = plan_scene(preset, seed, version)
     world = plan.world
     phrases, label = part_labels(world)
@@ -454,7 +455,7 @@ def ratio_interval(
 
 
 def summarise_code(results: list[dict]) -> dict:
-    """The scene code's rows over seeds (amendment 6)."""
+    """The scene code's rows over seeds."""
     pairs = [
         (res["seed"], c)
         for res in results
@@ -589,16 +590,16 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", nargs="+", default=["300-303"])
     ap.add_argument("--cams", type=int, default=16, help="train cameras a seed")
-    ap.add_argument("--version", type=int, default=2, choices=(1, 2, 3, 4, 5))
+    ap.add_argument("--version", type=int, default=5, choices=(1, 5))
     ap.add_argument("--scale", type=int, default=3, help="photo side x the preset's")
     ap.add_argument(
         "--out", type=Path, default=ROOT / "work" / "standin" / "profile.json"
     )
     ap.add_argument("--jobs", type=int, default=1, help="seeds measured at once")
     ap.add_argument("--code-only", action="store_true",
-                    help="only the scene code's crops (amendment 6)")  # fmt: skip
+                    help="only the scene code's crops")  # fmt: skip
     ap.add_argument("--levels-only", action="store_true",
-                    help="only the clean crops and amendment 9's contrast rows, "
+                    help="only the clean crops and the level contrast rows, "
                     "with a sweep of milder contrasts")  # fmt: skip
     ap.add_argument("--summarise", type=Path, metavar="JSON",
                     help="re-read a saved profile (its crops' decisions) and print "

@@ -226,11 +226,10 @@ def test_style_vocabulary_describes_the_whole_landmark(tiny_scene_dir):
     """The true style's text side is the landmark's look: the stand-in encoder,
     shown the landmark alone (its mask over the photo), prefers it over the
     distractor styles (other seeds' landmarks) in most photos."""
-    from ptovs.encoders import prepare_crop
-    from ptovs.encoders.synthetic import SyntheticEncoder
+    from ptovs.encoders import prepare_crop, scene_encoder
 
     truth = json.loads((tiny_scene_dir / "synthetic/truth/parts.json").read_text())
-    enc = SyntheticEncoder.from_scene(tiny_scene_dir)
+    enc = scene_encoder(tiny_scene_dir)
     assert sorted(enc.styles) == enc.styles == truth["style_candidates"]
     assert truth["style"] in enc.styles and len(enc.styles) == 5
     text = enc.encode_texts(enc.styles)

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ptovs.encoders import Encoder, get_encoder, prepare_crop
+from ptovs.encoders import Encoder, get_encoder, prepare_crop, scene_encoder
 from ptovs.encoders.synthetic import GENERIC_PHRASES, SyntheticEncoder
 from ptovs.synthetic.generate import load_truth, rerender
 from ptovs.synthetic.world import render_swatch
@@ -24,7 +24,7 @@ def tiny(tiny_scene_dir: Path) -> Path:
 
 @pytest.fixture(scope="module")
 def enc(tiny: Path) -> SyntheticEncoder:
-    return SyntheticEncoder.from_scene(tiny)
+    return scene_encoder(tiny)
 
 
 def _crops(n: int, seed: int = 0) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""bench/standin_profile.py's scene-code row (issue 41, amendment 6): crops read
+"""bench/standin_profile.py's scene-code row: crops read
 through the chain's 3-d autoencoder. A scene whose crops form a few tight concept
 clusters keeps its closed-set accuracy through the code, even under isotropic noise
 in many dimensions; one whose crops vary more along a few other directions than

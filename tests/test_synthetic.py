@@ -293,12 +293,12 @@ def _check_plan(preset: str, seed: int) -> dict[str, int]:
     from ptovs.synthetic import screen
     from ptovs.synthetic.generate import (
         PRESETS,
-        _min_px,
         isat_label,
         plan_scene,
         query_mask,
         scene_vocabulary,
     )
+    from ptovs.synthetic.presets import _min_px
     from ptovs.synthetic.world import neutral_appearance, render
 
     torch = pytest.importorskip("torch")
@@ -363,7 +363,7 @@ def test_screen_and_labels_hold_over_50_seeds(preset):
 def test_screen_records_reproducible_textures(tiny: Path) -> None:
     """parts.json's screen names, per part, the draw its texture comes from."""
     from ptovs.synthetic import screen
-    from ptovs.synthetic.generate import PRESETS, _world
+    from ptovs.synthetic.presets import PRESETS, _world
     from ptovs.synthetic.world import Texture
 
     _, parts = _truth(tiny)

@@ -117,10 +117,10 @@ def _query(config: Any, scene: Any) -> None:
     queries = resolve_queries(config, scene)  # parses the labels when no texts
     resolve_views(config, scene)
     if encoder_name(config, scene) == "synthetic" and scene.synthetic:
-        from ptovs.encoders.synthetic import SyntheticEncoder
+        from ptovs.encoders import scene_encoder
         from ptovs.field.query import check_vocabulary
 
-        check_vocabulary(SyntheticEncoder.from_scene(scene.root), queries)
+        check_vocabulary(scene_encoder(scene.root), queries)
 
 
 def preflight(chain: Any, stages: list[str]) -> None:

@@ -151,9 +151,9 @@ def check_styles(scene, styles: list[str]) -> None:
     embeds as noise): refuse the others, listing the styles (not the parts)."""
     if not scene.synthetic:
         return
-    from ptovs.encoders.synthetic import SyntheticEncoder
+    from ptovs.encoders import scene_encoder
 
-    enc = SyntheticEncoder.from_scene(scene.root)
+    enc = scene_encoder(scene.root)
     unknown = [s for s in styles if not enc.knows(s)]
     if unknown:
         raise InputError(
@@ -165,9 +165,9 @@ def check_styles(scene, styles: list[str]) -> None:
 
 def default_candidates(scene) -> list[str]:
     if scene.synthetic:
-        from ptovs.encoders.synthetic import SyntheticEncoder
+        from ptovs.encoders import scene_encoder
 
-        styles = SyntheticEncoder.from_scene(scene.root).styles
+        styles = scene_encoder(scene.root).styles
         if styles:
             return styles
     raise InputError(

@@ -11,7 +11,9 @@ and `prepare_crop` turns an image and a segment mask into the crop it encodes.
 
 from __future__ import annotations
 
+import json
 import logging
+from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -21,7 +23,8 @@ from ptovs.crop import prepare_crop  # the encoders' input, defined below them
 logger = logging.getLogger(__name__)
 
 ENCODERS = ("synthetic", "openclip")
-STANDIN_VERSIONS = (1, 2, 3, 4, 5)
+STANDIN_VERSIONS = (1, 5)
+RETIRED_STANDINS = (2, 3, 4)  # scenes written for them must be regenerated
 
 
 @runtime_checkable
@@ -40,14 +43,25 @@ class Encoder(Protocol):
         ...
 
 
-def standin_version(vocabulary: dict | None) -> int:
-    """Which stand-in a synthetic scene's vocabulary was written for (1 to 5)."""
+def standin_version(vocabulary: dict | None, source: object = None) -> int:
+    """Which stand-in a synthetic scene's vocabulary was written for (1 or 5).
+
+    `source` names where the vocabulary came from (its file), for the error a
+    retired or unknown version raises."""
     v = (vocabulary or {}).get("version", 1)
-    if v not in STANDIN_VERSIONS:
+    if v in STANDIN_VERSIONS:
+        return int(v)
+    where = f"{source}: " if source is not None else ""
+    if v in RETIRED_STANDINS:
         raise ValueError(
-            f"unknown stand-in version {v!r} in the vocabulary (1, 2, 3, 4 or 5)"
+            f"{where}stand-in version {v} is no longer supported (only 1 and 5 "
+            "are); regenerate the scene with `ptovs synth-scene --standin 1` or "
+            "`--standin 5`"
         )
-    return int(v)
+    raise ValueError(
+        f"{where}unknown stand-in version {v!r} (1 or 5); regenerate the scene "
+        "with `ptovs synth-scene --standin 1` or `--standin 5`"
+    )
 
 
 def synthetic_encoder(vocabulary=None) -> Encoder:
@@ -55,37 +69,34 @@ def synthetic_encoder(vocabulary=None) -> Encoder:
 
     Args:
         vocabulary: path to vocabulary.json, its dict, or None (version 1, generic
-            phrases only). Version 1 is `encoders.synthetic`; versions 2 and 3
-            (issue 41) `encoders.synthetic_v2`; version 4 `encoders.synthetic_v4`;
-            version 5 `encoders.synthetic_v5`.
+            phrases only). Version 1 is `encoders.synthetic`, version 5
+            `encoders.synthetic_v5`.
     """
-    import json
-    from pathlib import Path
+    vocab, source = vocabulary, None
+    if vocabulary is not None and not isinstance(vocabulary, dict):
+        source = Path(vocabulary)
+        if not source.is_file():
+            raise FileNotFoundError(f"vocabulary {source} not found")
+        vocab = json.loads(source.read_text())
+    if standin_version(vocab, source) == 5:
+        from ptovs.encoders.synthetic_v5 import SyntheticEncoderV5
 
+        return SyntheticEncoderV5(vocab)
     from ptovs.encoders.synthetic import SyntheticEncoder
 
-    vocab = vocabulary
-    if vocabulary is not None and not isinstance(vocabulary, dict):
-        path = Path(vocabulary)
-        if not path.is_file():
-            raise FileNotFoundError(f"vocabulary {path} not found")
-        vocab = json.loads(path.read_text())
-    version = standin_version(vocab)
-    if version == 5:
-        from ptovs.encoders import synthetic_v5
-
-        return synthetic_v5.SyntheticEncoderV5(vocab)
-    if version == 4:
-        from ptovs.encoders import synthetic_v4
-
-        return synthetic_v4.SyntheticEncoderV4(vocab)
-    if version in (2, 3):
-        from ptovs.encoders import synthetic_v2
-
-        if version == 3:
-            return synthetic_v2.SyntheticEncoderV3(vocab)
-        return synthetic_v2.SyntheticEncoderV2(vocab)
     return SyntheticEncoder(vocab)
+
+
+def scene_encoder(scene_dir: str | Path) -> Encoder:
+    """The stand-in encoder of a synthetic scene (reads synthetic/vocabulary.json):
+    version 1 or 5, as the vocabulary says."""
+    path = Path(scene_dir) / "synthetic" / "vocabulary.json"
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"{path} not found; the synthetic encoder needs a scene made by "
+            "`ptovs synth-scene`"
+        )
+    return synthetic_encoder(path)
 
 
 def get_encoder(name: str, **kwargs) -> Encoder:
@@ -115,6 +126,7 @@ __all__ = [
     "Encoder",
     "get_encoder",
     "prepare_crop",
+    "scene_encoder",
     "standin_version",
     "synthetic_encoder",
 ]

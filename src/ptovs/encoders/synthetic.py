@@ -435,7 +435,7 @@ class SyntheticEncoder:
             raise ValueError(
                 "vocabulary['phrases'] must map phrase -> swatch description"
             )
-        self._vocab = vocab  # as read: version 2 reads its world and parts from it
+        self._vocab = vocab  # as read: version 5 reads its world and parts from it
         self._phrases: dict[str, dict] = dict(vocab.get("phrases", {}))
         self._lower = {k.strip().lower(): v for k, v in self._phrases.items()}
         generic = vocab.get("generic") or generic_vocabulary()
@@ -443,20 +443,6 @@ class SyntheticEncoder:
         self._styles: dict[str, list[dict]] = dict(vocab.get("styles", {}))
         # a style embeds like a generic phrase: a normalised mixture of swatches
         self._generic.update({k.strip().lower(): v for k, v in self._styles.items()})
-
-    @classmethod
-    def from_scene(cls, scene_dir: str | Path) -> SyntheticEncoder:
-        """The encoder of a synthetic scene (reads synthetic/vocabulary.json): this
-        version or version 2, as the vocabulary says."""
-        path = Path(scene_dir) / "synthetic" / "vocabulary.json"
-        if not path.is_file():
-            raise FileNotFoundError(
-                f"{path} not found; the synthetic encoder needs a scene made by "
-                "`ptovs synth-scene`"
-            )
-        from ptovs.encoders import synthetic_encoder
-
-        return synthetic_encoder(path)  # the scene's stand-in version
 
     @property
     def phrases(self) -> list[str]:

@@ -186,9 +186,9 @@ def text_encoder(
 ) -> Encoder:
     spec = resolve_text_encoder(config, scene, recorded)
     if spec["name"] == "synthetic":
-        from ptovs.encoders.synthetic import SyntheticEncoder
+        from ptovs.encoders import scene_encoder
 
-        return SyntheticEncoder.from_scene(scene.root)
+        return scene_encoder(scene.root)
     return get_encoder(
         "openclip",
         model=spec["model"],

@@ -274,8 +274,8 @@ def _count(inputs: Inputs, config: Config) -> int:
 
 
 def standin_key(config: Config, scene_ref) -> dict[str, str]:
-    """A scene written for stand-in version 2 (issue 41) keys its features by it
-    (version 1 scenes keep the keys they always had)."""
+    """A scene written for stand-in version 5 keys its features by it (version 1
+    scenes keep the keys they always had)."""
     if config.encoder not in ("auto", "synthetic"):
         return {}
     path = _vocabulary(scene_ref.load().root)
@@ -285,7 +285,7 @@ def standin_key(config: Config, scene_ref) -> dict[str, str]:
 
     from ptovs.encoders import standin_version
 
-    v = standin_version(json.loads(path.read_text()))
+    v = standin_version(json.loads(path.read_text()), path)
     return {} if v == 1 else {"standin": str(v)}
 
 

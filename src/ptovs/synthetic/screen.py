@@ -1,4 +1,4 @@
-"""Answerable queries: the generator's screen of every query part (issue 20).
+"""Answerable queries: the generator's screen of every query part.
 
 A query is answerable when its phrase, on clean crops of its own part, wins the
 pipeline's relevancy rule against every negative phrase the pipeline compares it
@@ -17,7 +17,7 @@ stand-in encoder and take its margin
     m = cos(crop, q) − max_j cos(crop, n_j)   over the negatives n_j,
 
 so that the relevancy min_j sigmoid(τ(cos q − cos n_j)) = sigmoid(τ m). An
-*average word* of the stand-in (version 3's "building": the mean of the part
+*average word* of the stand-in (version 5's "building": the mean of the part
 phrases, so close to every part by definition) is only to be beaten, relevancy
 above 0.5: against it the margin counts MARGIN more. The
 part passes when its median crop has m ≥ MARGIN (= 1/τ: relevancy ≥ sigmoid(1)
@@ -119,9 +119,8 @@ def crop_margins(
         {part id: [n] float64 margins}, one per labelled instance.
     """
     from ptovs.crop import prepare_crop
-    from ptovs.encoders import synthetic_encoder
 
-    enc = synthetic_encoder(vocabulary)  # the vocabulary's stand-in version
+    enc = screen_encoder(vocabulary)
     by_id = {p.id: p for p in world.parts}
     text = enc.encode_texts([by_id[k].query for k in part_ids]).astype(np.float64)
     average = tuple(getattr(enc, "average_words", ()))
@@ -150,6 +149,23 @@ def crop_margins(
         sel = owner_a == k
         out[k] = margins(emb[sel] @ text[j], neg[sel], average)
     return out
+
+
+def screen_encoder(vocabulary: dict):
+    """The stand-in the screen reads a world with: version 1 for a version-1
+    vocabulary; for a version-5 one, the category text rules over the plain
+    reading of version 5's statistics (`encoders.standin_text.CategoryEncoder`),
+    so that a seed's photos do not depend on version 5's learnt projection."""
+    version = vocabulary.get("version", 1)
+    if version == 1:
+        from ptovs.encoders.synthetic import SyntheticEncoder
+
+        return SyntheticEncoder(vocabulary)
+    if version == 5:
+        from ptovs.encoders.standin_text import CategoryEncoder
+
+        return CategoryEncoder(vocabulary)
+    raise ValueError(f"the screen reads stand-in versions 1 and 5, not {version!r}")
 
 
 def margins(
@@ -268,6 +284,7 @@ __all__ = [
     "margins",
     "passes",
     "redraw_texture",
+    "screen_encoder",
     "screen_record",
     "screen_world",
 ]

@@ -1,54 +1,44 @@
-"""The stand-in for CLIP, version 2: it fails the way CLIP fails (issue 41).
+"""The image statistics of the stand-in for CLIP, version 5, and the plain
+reading of them that the synthetic generator screens version-5 worlds with.
 
-Version 1 (`ptovs.encoders.synthetic`) reads mostly colour statistics and matches a
-crop against one texture swatch of its part under neutral light: greyscale and
-sepia cost it half its accuracy, blur, low resolution and noise almost nothing, and
-its shape bias is 0.03. Version 2 is calibrated on crops only, against the targets
-registered in docs/benchmarks.md from CLIP's published figures:
-
-Image side, a fixed function of pixels. The crop is reduced by area to 112 x 112
-(exact black is outside the mask) and described by groups of statistics, each
-standardised against a fixed bank of random swatches, clipped to +-3 and weighted
-(`PARAMS`):
+A crop is reduced by area to 112 x 112 (exact black is outside the mask) and
+described by groups of statistics (`raw_features`), each standardised against a
+fixed bank of random swatches, clipped to +-3 and weighted (`standardised`):
 - silhouette: occupancy of the mask on a 4 x 4 grid, its fill, elongation and
   orientation (the shape cue, untouched by light and colour);
 - fine texture, on the contrast-normalised luminance: Gabor energy shares at
   wavelengths 2.5 and 5 px and six orientations (pooled well inside the mask, so
   the mask's own edge does not count), an orientation histogram of the gradient,
-  its mean magnitude, and the histogram of the normalised values (two-tone stripes
-  against noise): what blur, low resolution, noise and JPEG take away;
+  its mean magnitude, and the histogram of the normalised values;
 - coarse texture: Gabor energy shares at 10 and 20 px (filtered at half
   resolution, where the same kernels cost a quarter);
 - colour, a little: the hue of the mean opponent colour, the spread of colours
-  about it, a saturation-weighted hue histogram, all blind to saturation (so to
-  contrast); greyscale and a colour cast cost a little, not half;
+  about it, a saturation-weighted hue histogram, all blind to saturation;
 - (luminance level and a 4 x 4 luminance layout are computed, weighted 0: they
   follow the light, not the part);
-- a fixed pseudo-random perturbation keyed by the crop's own coarse content (a hash
-  of its 8 x 8 colour grid, quantised): the same pixels always get the same error,
-  another light or another view gets another one, so appearances err differently.
-  Its size grows with the crop's distortion (`distortion`): its blur deficit
-  (`blur_deficit`: the detail the crop lacks at the two finest scales compared
-  with a sharp render), as CLIP's features drift on blurred and upsampled crops,
-  plus its chroma decoupling (`chroma_decoupling`: chroma edges where the
-  luminance has none, as strong JPEG and sensor noise make them).
-The statistics are projected to 512-d with a seeded Gaussian matrix and normalised;
-the modality offset is version 1's.
+- two auxiliary columns, not projected: how well chroma edges follow luminance
+  edges, and how strong the chroma edges are.
 
-Text side, a category description, not one instance's template: a part's phrase
-embeds as the normalised mean content of its part rendered alone (masked and cut
-as a segment crop) from the views where it shows, under several ordinary daylight
-appearances, and in several instances of its category (its own texture and
-variants with other colours, frequencies and offsets of the same pattern).
-Generic phrases, "sky", styles and unknown phrases behave as in version 1.
+`PARAMS` holds the weights, the contrast floor and the perturbation's
+calibration with the four reading options off; version 5 (`synthetic_v5.STATS`)
+turns them on: "rim" (px) measures the luminance statistics that far inside the
+mask's edge; "robust" takes their level and spread as the median and
+interquartile range; "core_texture" filters the texture on that core only;
+"clip_ln" clips the normalised luminance to +- that many spreads.
 
-Version 3 (`SyntheticEncoderV3`, docs/benchmarks.md "Amendment 4") is version 2
-with one change of the text side: "building", one of the pipeline's canonical
-phrases, is the *average word* of the scene's part phrases (LERF chose its canonical
-phrases as "average" words for the queries users make, so that a relevancy of 0.5
-means "as relevant as an average word"). Version 2 kept version 1's square swatches
-for the canonical phrases, which lie far from every masked part crop, so every
-part's phrase won the relevancy on every part.
+Each crop also gets a fixed pseudo-random perturbation keyed by its own coarse
+content (`_key`: a hash of its 8 x 8 colour grid, quantised): the same pixels
+always get the same error, another light or view another one. Its size grows
+with the crop's `distortion`: its blur deficit (`blur_deficit`, the detail it
+lacks at the two finest scales against a sharp render) plus its chroma
+decoupling (`chroma_decoupling`, chroma edges where the luminance has none, as
+strong JPEG and sensor noise make them).
+
+`content` is the plain reading, options off: the perturbed standardised
+statistics projected to 512-d with a seeded Gaussian matrix and normalised. The
+generator's answerability screen reads version-5 worlds with it
+(`standin_text.CategoryEncoder`), so a seed's photos do not depend on version 5's
+learnt projection.
 
 Deterministic on one machine: float64 numpy and per-crop OpenCV filters and
 resizes (bit for bit across batch sizes and runs).
@@ -58,29 +48,15 @@ from __future__ import annotations
 
 import functools
 import hashlib
-import json
 import math
-from dataclasses import replace
-from pathlib import Path
 
 import cv2
 import numpy as np
 
 from ptovs.encoders import synthetic as v1
-from ptovs.synthetic.world import (
-    World,
-    neutral_appearance,
-    render,
-    render_swatch,
-    sky_swatch,
-)
-from ptovs.synthetic.world.appearance import Appearance, sample_appearance
-from ptovs.synthetic.world.swatches import landmark_camera
-from ptovs.synthetic.world.textures import Texture
 
 DIM = v1.DIM
 SEED = 20261126
-VERSION = 2
 _R = 112
 WAVELENGTHS = (2.5, 5.0, 10.0, 20.0)  # Gabor wavelengths, pixels at _R (x2 at 224)
 N_FINE = 2  # the first N_FINE wavelengths are the "fine" group
@@ -90,11 +66,8 @@ ZCLIP = 3.0  # standardised statistics are clipped: no one cell of a grid domina
 LN_BINS = np.linspace(-2.0, 2.0, 9)  # histogram of the normalised luminance
 
 # calibrated on crops of calibration seeds 300-305 (bench/standin_profile.py).
-# Optional keys, absent (off) in versions 2 to 4 and set by version 5
-# (`synthetic_v5.STATS`): "rim" (px) measures the luminance statistics that far
-# inside the mask's edge; "robust" takes their level and spread as the median and
-# interquartile range; "core_texture" filters the texture on that core only;
-# "clip_ln" clips the normalised luminance to +- that many spreads
+# The reading options ("rim", "robust", "core_texture", "clip_ln") are absent
+# here, so off: version 5 sets them (`synthetic_v5.STATS`, module docstring)
 PARAMS: dict[str, float] = {
     "w_colour": 0.7,  # hue and colour spread (blind to saturation and contrast)
     "w_lum": 0.0,  # mean and spread of luminance: off (lighting, not identity)
@@ -164,7 +137,7 @@ def _grid(v: np.ndarray, m: np.ndarray, g: int) -> np.ndarray:
 
 
 def _one(crop: np.ndarray, p: dict) -> np.ndarray:
-    """Version 2's statistics of one crop under the options of `p` (`PARAMS`)."""
+    """The statistics of one crop under the options of `p` (`PARAMS`)."""
     floor, rim = p["floor"], int(p.get("rim", 0))
     core_texture = bool(p.get("core_texture", 0))
     clip_ln = float(p.get("clip_ln", 0.0))
@@ -414,12 +387,12 @@ def standardised(
     return z, float(np.sqrt((gw * gw).sum()))
 
 
-def content(crops: np.ndarray, params: dict | None = None) -> np.ndarray:
-    """Unit content vectors [B, 512] float64 of crops [B, S, S, 3]."""
-    p = PARAMS if params is None else params
-    raw = raw_features(crops, p)
-    z, norm = standardised(raw, params)
-    amp = p["noise"] * (1.0 + distortion(raw, p))
+def content(crops: np.ndarray) -> np.ndarray:
+    """Unit content vectors [B, 512] float64 of crops [B, S, S, 3]: the plain
+    reading (options off) the generator screens version-5 worlds with."""
+    raw = raw_features(crops)
+    z, norm = standardised(raw)
+    amp = PARAMS["noise"] * (1.0 + distortion(raw))
     for b, crop in enumerate(crops):
         e = np.random.default_rng(_key(crop)).standard_normal(N_FEATURES)
         z[b] += amp[b] * norm * e / np.sqrt(N_FEATURES)
@@ -428,200 +401,3 @@ def content(crops: np.ndarray, params: dict | None = None) -> np.ndarray:
     for k in range(N_FEATURES):  # fixed-order projection, batch independent
         acc += z[:, k : k + 1] * P[k]
     return v1._normalise(acc)
-
-
-# ------------------------------------------------------------- text side --
-
-TEXT_AZIMUTHS = tuple(range(-150, 181, 30))
-TEXT_VIEWS = 3  # the part's best views (most pixels) among TEXT_AZIMUTHS
-TEXT_PX = 256
-N_INSTANCES = 3  # the part's own texture and this many variants
-N_DAYLIGHT = 3
-
-
-@functools.lru_cache(maxsize=1)
-def daylight_appearances() -> tuple[Appearance, ...]:
-    """The text side's ordinary lights: neutral and N_DAYLIGHT - 1 fixed draws."""
-    rng = np.random.default_rng(SEED + 5)
-    out = [neutral_appearance()]
-    while len(out) < N_DAYLIGHT:
-        a = sample_appearance(rng)
-        if a.sky in ("day", "overcast") and not a.hard:
-            out.append(a)
-    return tuple(out)
-
-
-def instances(tex: Texture, part_id: int) -> list[Texture]:
-    """The part's texture and N_INSTANCES variants of the same pattern."""
-    rng = np.random.default_rng([SEED + 6, part_id])
-    out = [tex]
-    for k in range(N_INSTANCES):
-        jit = rng.uniform(0.8, 1.2, 3) * rng.uniform(0.85, 1.15)
-        out.append(
-            replace(
-                tex,
-                base=tuple(
-                    float(np.clip(c * j, 0.02, 1.0))
-                    for c, j in zip(tex.base, jit, strict=True)
-                ),
-                accent=tuple(
-                    float(np.clip(c * j, 0.02, 1.0))
-                    for c, j in zip(tex.accent, jit[::-1], strict=True)
-                ),
-                freq=float(tex.freq * rng.uniform(0.8, 1.25)),
-                offset=tuple(float(x) for x in rng.uniform(0.0, 3.0, 3)),
-                seed=int(tex.seed) + 101 * (k + 1),
-            )
-        )
-    return out
-
-
-_PART_CONTENT: dict[str, np.ndarray] = {}  # bounded: cleared past 256 entries
-
-
-def part_content(world: World, part_id: int, fn=None) -> np.ndarray:
-    """Mean content of `part_crops` under the image side `fn` (default: this
-    version's `content`), cached by what those crops depend on: the world's
-    geometry and this part's texture (other parts' textures never show in this
-    part's pixels), so a screen that redraws one part re-renders one."""
-    fn = content if fn is None else fn
-    d = world.to_dict()
-    for q in d["parts"]:
-        if q["id"] != part_id:
-            q.pop("texture", None)
-            q["name"] = q["query"] = ""
-    tag = [VERSION] if fn is content else [VERSION, fn.__module__, fn.__qualname__]
-    key = hashlib.sha256(
-        json.dumps([d, part_id, *tag, TEXT_PX], sort_keys=True).encode()
-    ).hexdigest()
-    if key not in _PART_CONTENT:
-        if len(_PART_CONTENT) >= 256:
-            _PART_CONTENT.clear()
-        out = fn(np.stack(part_crops(world, part_id))).mean(axis=0)
-        out.flags.writeable = False
-        _PART_CONTENT[key] = out
-    return _PART_CONTENT[key]
-
-
-def part_crops(world: World, part_id: int) -> list[np.ndarray]:
-    """The part alone, as segment crops: best views x daylight x instances."""
-    from ptovs.crop import prepare_crop
-
-    views = []
-    for az in TEXT_AZIMUTHS:
-        cam = landmark_camera(world, float(az), TEXT_PX)
-        v = render(world, cam, neutral_appearance(), aa=1, shadows=False)
-        n = int((v.part_id == part_id).sum())
-        if n >= 16:
-            views.append((n, az, cam))
-    views = sorted(views, key=lambda t: (-t[0], t[1]))[:TEXT_VIEWS]
-    part = next(p for p in world.parts if p.id == part_id)
-    crops = []
-    for tex in instances(part.texture, part_id):
-        w = replace(
-            world,
-            parts=[
-                replace(p, texture=tex) if p.id == part_id else p for p in world.parts
-            ],
-        )
-        for _, _, cam in views:
-            for app in daylight_appearances():
-                v = render(w, cam, app, aa=1)
-                m = v.part_id == part_id
-                img = np.maximum(v.image.astype(np.float32) / 255.0, 1.0 / 255.0)
-                crops.append(prepare_crop(img, m))
-    return crops
-
-
-class SyntheticEncoderV2(v1.SyntheticEncoder):
-    """Stand-in for CLIP, version 2 (module docstring). The vocabulary is version 1's
-    plus "world" (the World dict) and "parts" ({phrase: [part ids]}): a listed
-    phrase embeds as its parts' category description (`part_crops`)."""
-
-    name = "synthetic-v2"
-    image_side = staticmethod(content)  # crops [B, S, S, 3] -> unit [B, 512]
-
-    def __init__(self, vocabulary: str | Path | dict | None = None) -> None:
-        super().__init__(vocabulary)
-        vocab = self._vocab
-        self._world = World.from_dict(vocab["world"]) if "world" in vocab else None
-        self._parts: dict[str, list[int]] = {
-            k.strip().lower(): list(v) for k, v in vocab.get("parts", {}).items()
-        }
-
-    def encode_images(self, crops: np.ndarray) -> np.ndarray:
-        crops = np.asarray(crops)
-        if crops.ndim != 4 or crops.shape[-1] != 3:
-            raise ValueError(f"crops must be [B, S, S, 3], got {crops.shape}")
-        if len(crops) == 0:
-            return np.zeros((0, DIM), np.float32)
-        return v1._embed(self.image_side(crops), 0)
-
-    def _text_content(self, phrase: str) -> np.ndarray:
-        key = phrase.strip().lower()
-        if self._world is not None and key in self._parts:
-            acc = sum(
-                part_content(self._world, pid, self.image_side)
-                for pid in self._parts[key]
-            )
-            return v1._normalise(acc)
-        if key == "sky" or key in self._generic or key in self._lower:
-            return self._v2_swatch(phrase)
-        return super()._text_content(phrase)
-
-    def _v2_swatch(self, phrase: str) -> np.ndarray:
-        key = phrase.strip()
-        desc = self._phrases.get(key, self._lower.get(key.lower()))
-        items = (
-            [{"weight": 1.0, "swatch": desc}]
-            if desc is not None
-            else self._generic.get(
-                key.lower(), [{"weight": 1.0, "swatch": sky_swatch()}]
-            )
-        )
-        acc = np.zeros(DIM)
-        for it in items:
-            key = json.dumps(it["swatch"], sort_keys=True)
-            acc = acc + float(it["weight"]) * _swatch_content(key, self.image_side)
-        return v1._normalise(acc)
-
-
-@functools.lru_cache(maxsize=1024)
-def _swatch_content(key: str, fn=content) -> np.ndarray:
-    """Content under the image side `fn` of a swatch (its description as
-    canonical JSON), shared by every encoder of the process, as in version 1."""
-    out = fn(render_swatch(json.loads(key))[None])[0]
-    out.flags.writeable = False
-    return out
-
-
-AVERAGE_WORDS = ("building",)
-"""Version 3's canonical phrases that embed as the average of the part phrases."""
-
-
-class SyntheticEncoderV3(SyntheticEncoderV2):
-    """Stand-in for CLIP, version 3: version 2 whose "building" is the average word
-    of the scene's part phrases (module docstring; issue 41, amendment 4)."""
-
-    name = "synthetic-v3"
-    average_words = AVERAGE_WORDS
-
-    def _text_content(self, phrase: str) -> np.ndarray:
-        key = phrase.strip().lower()
-        if key in AVERAGE_WORDS and self._world is not None and self._parts:
-            return self._average_word(key)
-        return super()._text_content(phrase)
-
-    def _average_word(self, key: str) -> np.ndarray:
-        """m + sqrt(1 - |m|^2) n: m the mean content of the part phrases, n a fixed
-        seeded unit vector orthogonal to m. Its cosine with any content c is
-        c.m (the mean of the part phrases' cosines with c) plus n's chance
-        cosine with c, about N(0, (1 - |m|^2) / 512)."""
-        parts = sorted(self._parts)
-        m = np.mean([SyntheticEncoderV2._text_content(self, p) for p in parts], axis=0)
-        n = np.random.default_rng([SEED + 7, *key.encode()]).standard_normal(DIM)
-        mm = float(m @ m)
-        if mm > 0:
-            n = n - (n @ m) / mm * m
-        n = n / np.sqrt(n @ n)
-        return m + np.sqrt(max(0.0, 1.0 - mm)) * n
