@@ -119,7 +119,6 @@ format: setup
 # DATA, work under WORK/bench); the real photo sets (REAL) and their pictures
 bench: setup
 	$(BIN)/python bench/raster.py
-	$(BIN)/python bench/encoder_calibration.py --seeds 0 1 2 --out $(QWORK)/synthetic
 	$(BIN)/python bench/reconstruct.py --seeds 0 1 2 --data $(QDATA) --work $(QWORK)/bench
 	$(BIN)/python bench/extract.py --seeds 0 1 2 --data $(QDATA) --work $(QWORK)/bench
 	$(BIN)/python bench/train.py --seeds 0 1 2 --data $(QDATA) --work $(QWORK)/bench
