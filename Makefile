@@ -146,7 +146,7 @@ bench-peers: setup
 	  $(if $(OPENSPLAT_DEPS),--fetchcontent $(call q,$(OPENSPLAT_DEPS))) \
 	  --real $(REAL) --work $(QWORK)/peers --iterations $(PEERS_ITERATIONS)
 
-# the accuracy instrument (issue 20): ACC_SEEDS seeds of the `small` preset, every
+# the accuracy instrument: ACC_SEEDS seeds of the `small` preset, every
 # variant, ceilings, cluster-bootstrap CIs; dev = the first half of the seeds, test
 # = the second. Resumes where a killed run stopped. Tables: work/accuracy/accuracy.md
 ACC_SEEDS ?= 0-17

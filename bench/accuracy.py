@@ -1,6 +1,6 @@
 """The accuracy instrument: it can see a 0.05 mIoU difference.
 
-    make bench-accuracy                                   # what docs/benchmarks.md reports
+    make bench-accuracy                                   # what docs/results.md reports
     python bench/accuracy.py --preset small --seeds 0-17  # the same, by hand
     python bench/accuracy.py --report-only                # tables and plot from the results
     python bench/accuracy.py --preset bench --seeds 0-2 --dev 0-2 \\
@@ -109,10 +109,10 @@ CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
         )
     },
     "oracle": ("male", {}),  # + the clean features' import_dir (`import_features`)
-    # the headroom of issue 41: the photos' own features in the original slot,
+    # the headroom row: the photos' own features in the original slot,
     # clean features in the novel slots (`import_features`)
     "ideal-novel": ("male", {}),
-    # Table 4: which targets the novel slots get (issue 41): the same appearance in
+    # Table 4: which targets the novel slots get: the same appearance in
     # every novel slot, and the selection without its quality constraint, without
     # its diversity constraint, without both; and ε_q on a normalised error
     "same-appearance": ("male", {"render-appearances": ["targets=same"]}),
@@ -124,7 +124,7 @@ CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
         f"quality-{m}": ("male", {"render-appearances": [f"quality_metric={m}"]})
         for m in ("l1-relative", "dssim")
     },
-    # the defaults before issue 40 (one graph pass per level, fixed 20/7 px filters)
+    # the defaults before the hier segmenter (one graph pass per level, fixed 20/7 px filters)
     "male-old": (
         "male",
         {"extract-features": ["segmenter=graph"], "query": ["filter_ref=0"]},
@@ -136,7 +136,7 @@ CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
         for v in ("male", "langsplat", "no-multi-appearance")
     },
 }
-# Table 4 on truth segments (issue 41, amendment 5): `male-truth` with one change
+# Table 4 on truth segments: `male-truth` with one change
 # of render-appearances, so that the paired difference is the selection's alone
 CHAIN_LABELS.update({
     f"{k}-truth": ("male", {**CHAIN_LABELS[k][1], "extract-features": ["segmenter=truth"]})
@@ -237,7 +237,7 @@ def chosen_targets(ctx, ref, variant: str, sets: dict, cams: dict) -> dict | Non
         slots = read_json_dataset(art.root()["slots_json"])
     finally:
         art.close()
-    art = chain.inputs_of("reconstruct")  # the renders' fidelity (issue 41 item 4)
+    art = chain.inputs_of("reconstruct")  # the renders' fidelity
     try:
         root = art.root()
         fit = read_json_dataset(root["metrics_json"]) if "metrics_json" in root else {}
@@ -560,7 +560,7 @@ def run_seed(args: argparse.Namespace, seed: int) -> None:
             wall = time.perf_counter() - t0
             res["labels"][label] = _entry(pairs, secs, wall, keys[label])
             renders = chosen_targets(ctx, ref, variant, sets, cams)
-            if renders is not None:  # issue 41: what the selection picked
+            if renders is not None:  # what the selection picked
                 res["labels"][label]["renders"] = renders
         write_atomic(path, json.dumps(res))
         print(f"{scene.name} {label}: {time.perf_counter() - t0:.1f} s", flush=True)
@@ -795,7 +795,7 @@ def report(args: argparse.Namespace) -> str:
 
 
 def _render_lines(results: dict[int, dict], labels: list[str]) -> list[str]:
-    """What each label's novel slots were rendered from (issue 41): the field's
+    """What each label's novel slots were rendered from: the field's
     test PSNR and the truth appearance of the chosen targets, over all seeds."""
     from collections import Counter
 
@@ -951,7 +951,7 @@ def _time_lines(results: dict[int, dict]) -> list[str]:
         f"Summed job time per seed (one thread): mean {np.mean(list(walls.values())):.0f} s, "
         f"max {max(walls.values()):.0f} s; {tot / 60:.0f} min over {len(walls)} seeds "
         "(two seeds run at a time on two cores; the wall time of the whole run is "
-        "printed by the runner and recorded in docs/benchmarks.md)."
+        "printed by the runner and recorded in docs/results.md)."
     ]
 
 

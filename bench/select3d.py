@@ -1,5 +1,5 @@
 """The 3-D selection's gate and smoothing, measured on the accuracy instrument's
-scenes (issue 22): for every seed's full-method chain and every query part, the
+scenes: for every seed's full-method chain and every query part, the
 share of the selected Gaussians that lie on the query's part (their nearest truth
 surface sample, `ptovs.synthetic.generate.nearest_parts`), under a grid of
 `SelectOptions` (VISIBILITY:K: the visibility gate × neighbours smoothed over).

@@ -391,7 +391,7 @@ def through_code(model, x: np.ndarray) -> np.ndarray:
 
 
 def code_rows(embs: dict, truths: dict, text: np.ndarray, canon: np.ndarray) -> dict:
-    """Amendment 6: the scene's crops through its own 3-d code. Per evaluated crop
+    """The scene's crops through its own 3-d code. Per evaluated crop
     [truth, pred raw, pred code, own and other relevancy raw, the same through the
     code], and the code's held-out cosine."""
     fit = np.concatenate(

@@ -1,4 +1,4 @@
-"""Style recognition over the accuracy instrument's seeds (issue 22): does
+"""Style recognition over the accuracy instrument's seeds: does
 `ptovs style` name each synthetic landmark's true style, and does it beat the raw
 encoder that sees the photos themselves?
 

@@ -1,4 +1,4 @@
-"""bench/accuracy.py (issue 20): a killed run resumes without redoing finished
+"""bench/accuracy.py: a killed run resumes without redoing finished
 seeds; the report's cluster statistics on hand-made results."""
 
 from __future__ import annotations
@@ -129,7 +129,7 @@ def test_report_statistics_on_known_results() -> None:
 
 
 def test_differences_against_another_base() -> None:
-    """Amendment 5: rows on truth segments pair against `male-truth`, not `male`;
+    """Rows on truth segments pair against `male-truth`, not `male`;
     Table 4's truth labels are `male-truth` with one render-appearances change."""
     acc = _bench()
     results = {
@@ -192,7 +192,7 @@ def test_import_labels_say_whose_features_each_slot_gets() -> None:
 
 
 def test_target_labels_and_the_renders_they_log(tmp_path: Path) -> None:
-    """Issue 41: Table 4's labels are on request; the report says what the novel
+    """Table 4's labels are on request; the report says what the novel
     slots were rendered from; a scene of another stand-in's world is refused."""
     acc = _bench()
     for lab in ("same-appearance", "select-random", "quality-dssim"):

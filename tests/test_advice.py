@@ -1,4 +1,4 @@
-"""An error's advice, applied as written, works (issue 42): for each mistake a user
+"""An error's advice, applied as written, works: for each mistake a user
 makes at first contact, the one-line error names a fix; the test takes the fix
 from the message itself (a "did you mean", a folder to pass, a name to give),
 applies it, and sees the command succeed. Messages about output paths are in

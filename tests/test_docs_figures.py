@@ -67,7 +67,9 @@ def test_readme_links_into_results_name_existing_headings():
     links = LINK.findall(README.read_text())
     assert links, "the README links no section of docs/results.md"
     missing = sorted(set(links) - have)
-    assert not missing, f"README.md links docs/results.md#{missing}; headings: {sorted(have)}"
+    assert not missing, (
+        f"README.md links docs/results.md#{missing}; headings: {sorted(have)}"
+    )
 
 
 def test_the_demo_figures_are_the_recorded_ones():
@@ -106,5 +108,8 @@ def test_front_pages_stay_short(name, most):
 
 def test_slug_matches_github_anchors():
     assert slug("The demo") == "the-demo"
-    assert slug("The paper's multi-appearance claim") == "the-papers-multi-appearance-claim"
+    assert (
+        slug("The paper's multi-appearance claim")
+        == "the-papers-multi-appearance-claim"
+    )
     assert slug("Speed: the `cpu` kernel") == "speed-the-cpu-kernel"

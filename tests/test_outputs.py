@@ -1,4 +1,4 @@
-"""Outputs a user names (issue 23): checked before any work, never sharing a path,
+"""Outputs a user names: checked before any work, never sharing a path,
 written through a verified temporary file, and every failure a one-line message
 with nothing left behind."""
 

@@ -1,4 +1,4 @@
-"""Preflight (issue 42): what would fail hours into a chain fails before it starts,
+"""Preflight: what would fail hours into a chain fails before it starts,
 as one line naming the file and the fix, and leaves the work dir as it was."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Progress lines where no bar shows (issue 23): a logged run is never silent for
+"""Progress lines where no bar shows: a logged run is never silent for
 more than 30 s."""
 
 from __future__ import annotations

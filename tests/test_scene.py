@@ -794,7 +794,7 @@ def test_a_broken_label_file_fails_when_the_scene_loads(labelled):
 def test_label_vertices_far_outside_are_refused_near_ones_clipped(labelled, caplog):
     """Vertices of 1e30 were accepted (a numpy cast warning, minutes of filling, a
     different mIoU); a polygon reaching just past the border is clipped, with a
-    warning that names the file (issue 23)."""
+    warning that names the file."""
     scene, labels = labelled
     v = scene.views[0]
     path = labels / f"{v.stem}.json"

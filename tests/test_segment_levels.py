@@ -1,4 +1,4 @@
-"""Issue 40's segment tools: truth levels (the instrument's perfect segmenter), the
+"""The segment tools: truth levels (the instrument's perfect segmenter), the
 hierarchical merging segmenter, the segment-quality measures, and query filters
 that follow the image size."""
 

@@ -265,7 +265,7 @@ def _with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:
 
 def test_exif_rotated_photo_is_staged_upright(tmp_path, caplog):
     """A phone photo stored sideways with an EXIF orientation is posed upright, and
-    the log names it (issue 24); a photo without the tag is copied as it is."""
+    the log names it; a photo without the tag is copied as it is."""
     from ptovs.sfm import _stage_photos
 
     rng = np.random.default_rng(0)
@@ -366,7 +366,7 @@ def test_pixel_thresholds_follow_the_photo_size(tmp_path):
 
 def test_sfm_tips_are_valid_settings_that_change_what_ran():
     """The advice when too few photos register: each tip, applied as written,
-    is a valid setting and a different one from what ran (issue 42: the old tips
+    is a valid setting and a different one from what ran (the old tips
     named the defaults)."""
     import re
 

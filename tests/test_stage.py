@@ -294,7 +294,7 @@ def test_concurrent_runs_do_not_corrupt(env):
 
 def test_label_edits_rekey_only_the_stages_that_read_labels(scene_copy: Path):
     """A label edit changes the keys of query and evaluate, and of nothing before
-    them: reconstruct and training are reused (issue 23)."""
+    them: reconstruct and training are reused."""
     from ptovs.chain import Chain, RunContext
     from ptovs.config import load_config
     from ptovs.locate import resolve_scene

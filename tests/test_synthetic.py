@@ -344,7 +344,7 @@ def _check_plan(preset: str, seed: int) -> dict[str, int]:
 
 @pytest.mark.parametrize("preset", ["tiny", "small", "bench", "scale"])
 def test_screen_and_labels_hold_over_50_seeds(preset):
-    """Issue 20: every preset's query phrases are answerable on their clean truth
+    """Every preset's query phrases are answerable on their clean truth
     crops, over 50 seeds; no label polygon under 3 points (slivers seen in one
     view). Two worker processes: the 200 plans are the suite's longest test."""
     import multiprocessing
@@ -506,7 +506,7 @@ def test_landmark_preset_and_photos_make_one_world_at_any_size(tmp_path: Path) -
 
 
 def test_small_3x_is_small_photographed_at_three_times_the_side() -> None:
-    """`small-3x` (issue 41's instrument at the stand-in's calibration size): the
+    """`small-3x` (the instrument at the stand-in's calibration size): the
     world, cameras, evaluation views and screen of `small`, with 9x the pixels."""
     from ptovs.synthetic.generate import plan_scene
 

@@ -719,7 +719,7 @@ def test_langsplat_variants_through_the_cli(trained):
 
 
 def test_paper_variant_is_the_default_but_the_papers_ae_weighting(trained):
-    """`--variant paper` keeps the paper's text: the chain before issue 22, whose
+    """`--variant paper` keeps the paper's text: the chain before the lift and loss-only defaults, whose
     one changed default is the AE weighting. Everything upstream is reused; its
     train-ae config differs from the default's in `weighting` alone."""
     work, data, _ = trained

@@ -139,7 +139,7 @@ class Resources:
     """What one stage of one scene asks a cluster for (`workflow/Snakefile`).
 
     `peak_mb` is the stage's peak RSS measured on a collection of REF_PHOTOS
-    photos of a real photo size (docs/benchmarks.md, "A landmark-sized collection on
+    photos of a real photo size (docs/findings.md, "A landmark-sized collection on
     one machine"). A stage whose memory must grow with the photos says so in
     `mb_per_photo` (the measured growth a photo); for a scene of n photos the
     peak is taken as peak_mb + mb_per_photo * (n - REF_PHOTOS), never below

@@ -1,4 +1,4 @@
-"""Checks that run before the first stage of a chain (issue 42): a mistake that
+"""Checks that run before the first stage of a chain: a mistake that
 would fail hours in (a missing or mismatched checkpoint, a phrase the encoder does
 not know, a view that does not exist, a label file that does not parse) fails in
 seconds instead, as one line naming the file and the fix, and leaves nothing

@@ -16,7 +16,7 @@ This module stages the photos, maps, undistorts and caches the result; the
 `[sfm]` settings (SfmConfig) and the SIFT extraction and matching are in
 `ptovs.sfm_match`.
 
-Choices (measured on the bench preset, docs/benchmarks.md):
+Choices (measured on the bench preset, docs/findings.md):
 - Photos are checked first: unreadable files and truncated JPEGs (no end-of-image
   marker: libjpeg decodes them with a warning that names no file) are skipped and
   listed; grey, 16-bit, alpha photos are converted to 8-bit RGB copies, and JPEGs
@@ -43,7 +43,7 @@ Choices (measured on the bench preset, docs/benchmarks.md):
   registers on `min_pose_inliers` (12) 2D-3D inliers: with the two choices above,
   bench seeds 0-2 register 56 / 61 / 68 of 88 photos at ~1 deg median rotation error
   (46 / 62 / 56 at 2-3 deg with COLMAP's 15 and 30 and neither choice; see
-  docs/benchmarks.md). The structure-less registration fallback is off (it took
+  docs/findings.md). The structure-less registration fallback is off (it took
   most of 293 s on one bench image).
 - One camera per photo (`camera_mode = "per_image"`): Internet photos differ in
   focal length and size. SIMPLE_RADIAL, then `pycolmap.undistort_images`.

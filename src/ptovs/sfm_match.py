@@ -31,7 +31,7 @@ class SfmConfig:
     max_num_features: int = 4096
     """SIFT keypoint locations kept per photo. COLMAP gives a location up to two
     orientations, so a photo holds up to twice this many features (5,866 on the
-    3072×2048 fountain_p11 photos, docs/benchmarks.md)."""
+    3072×2048 fountain_p11 photos, docs/findings.md)."""
     peak_threshold: float = 0.0067
     """SIFT detection threshold (COLMAP's default); lower finds more on flat images."""
     min_num_matches: int = 10

@@ -1,12 +1,12 @@
 """Named recipes: bundles of per-stage config values (`ptovs train --variant NAME`).
 
 - `male` (default): the paper's MALE-GS on the in-the-wild field, with two
-  changes the accuracy benchmark chose (issue 22): the authors' code's AE weighting
+  changes the accuracy benchmark chose: the authors' code's AE weighting
   (`train-ae.weighting = "loss_only"`) and the training-free lift in train-male
   (`train-male.mode = "lift"`: each Gaussian's weighted mean segment feature).
 - `optimise`: `male` with train-male's optimiser (Adam to a plateau) instead.
 - `paper`: the paper's text exactly: the optimiser and the AE trained on p·x
-  (`train-ae.weighting = "input_and_target"`), the default before issue 22.
+  (`train-ae.weighting = "input_and_target"`), the default before the lift.
 - `langsplat`: LangSplat's recipe (one appearance, the original images' features,
   no uncertainty) on plain-3DGS geometry (`reconstruct.wild = false`).
 - `langsplat-wild`: the same recipe on the in-the-wild geometry, so that geometry
@@ -32,7 +32,7 @@ VARIANTS: dict[str, dict[str, list[str]]] = {
     # train-male's optimiser instead of the lift
     "optimise": {"train-male": ["mode=optimise"]},
     # the paper's text: the optimiser and the AE trained on p·x, D(E(p·x)) against
-    # p·x (the default before issue 22)
+    # p·x (the default before the lift)
     "paper": {
         "train-ae": ["weighting=input_and_target"],
         "train-male": ["mode=optimise"],

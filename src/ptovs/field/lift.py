@@ -64,7 +64,7 @@ def feature_lift_sums(
     )
     # [P, K] (Gaussian, segment) weights. In COO, not CSR: torch's CPU product of two
     # sparse CSR tensors keeps ~16 MB a call at 153k Gaussians (torch 2.13; measured,
-    # docs/benchmarks.md), which killed a 2,934-photo lift at 23.7 GB.
+    # docs/findings.md), which killed a 2,934-photo lift at 23.7 GB.
     gs = torch.sparse.mm(w_mat.to_sparse_coo(), s_mat.to_sparse_coo()).coalesce()
     g_of, c_of = gs.indices().numpy()  # coalesced: row-major, distinct pairs
     vals = gs.values().numpy()

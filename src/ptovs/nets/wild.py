@@ -19,7 +19,7 @@ Layers, sizes and the paper's and authors' choices: docs/method.md §2.
 Two presets with the same structure: `authors` (exactly the released layer sizes:
 256² inputs, widths 128…512, FC256; needed to import their checkpoints) and `cpu`
 (64² inputs and narrower layers, about 100× fewer FLOPs per step; see
-docs/benchmarks.md for what it loses at equal iterations). The sky head
+docs/findings.md for what it loses at equal iterations). The sky head
 (`SkyNet`, `WildNets.background`) is ours: the authors render on black, which leaves
 the sky to floaters; with an imported model it is absent and the background is black.
 """

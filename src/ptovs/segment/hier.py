@@ -21,7 +21,7 @@ similar colour. Here one hierarchy is built and the levels are cuts of it:
 
 Every pixel gets a segment. The defaults (texture 1 px, no edge term, 300 px
 specks, cuts at 8 / 20 / 45) were chosen on the accuracy instrument's dev seeds
-(`bench/segments.py`, docs/benchmarks.md): 2-D ceiling 0.415 against the graph
+(`bench/segments.py`, docs/findings.md): 2-D ceiling 0.415 against the graph
 segmenter's 0.325 there, with about as many segments (113 against 96 a photo).
 """
 

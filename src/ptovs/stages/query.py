@@ -14,7 +14,7 @@ majority filter. See `ptovs.field.relevancy` for each step and its options.
 Decoding (`decode`): "table" tabulates the decoder's cosine with each phrase once
 per call on a `table_size`³ grid over the ball of rendered codes, turns it into
 each query's relevancy and background tables, and interpolates those per pixel;
-"exact" decodes every pixel. docs/benchmarks.md gives the table's error and how
+"exact" decodes every pixel. docs/findings.md gives the table's error and how
 often it changes a mask pixel.
 
 Defaults: `queries` empty = every category of the scene's labels; `views` empty =

@@ -46,8 +46,7 @@ VERSION = 2 + 100 * RASTER_VERSION  # renders: the rasterizer's version is in th
 MASK_DIV = 4  # stored transient masks: working size / 4
 RESIDUAL_HALF = 0.22
 """The colour residual (L2 over RGB in [0, 1]) that a stored transient mask scores 0.5;
-between the two cuts with the best F1 on bench seed 0, 0.20 and 0.25 (docs/benchmarks.md,
-issue 24, sixth stop)."""
+between the two cuts with the best F1 on bench seed 0, 0.20 and 0.25 (docs/findings.md)."""
 
 
 @dataclass(frozen=True)
@@ -64,11 +63,11 @@ class Config:
     paper's "delta-sh" (ΔSH from SH, PE(μ), l), or "affine" (a per-channel affine
     colour map from a per-Gaussian embedding, l and the base colour, as
     WildGaussians). With `color_map`, shading is 8-15 % faster than delta-sh at
-    +0.1 to +0.5 dB test PSNR on bench seeds 0-2 (docs/benchmarks.md, issue 24)."""
+    +0.1 to +0.5 dB test PSNR on bench seeds 0-2 (docs/findings.md)."""
     image_stats: bool = True
     """Append 8 fixed colour statistics of the photo (mean, spread, chroma, sky
     brightness) to f_α's learned embedding (+0.5 to +2.1 dB test PSNR on bench
-    seeds 0-2, docs/benchmarks.md, issue 24); false = the paper's embedding alone."""
+    seeds 0-2, docs/findings.md); false = the paper's embedding alone."""
     color_map: bool = True
     """A per-image 3×3 colour matrix and offset from the embedding, applied to the
     rendered image (exposure, tint, black-and-white or sepia, which a per-channel
@@ -105,7 +104,7 @@ class Config:
     """The budget that follows the scene: densification grows to at most this many
     Gaussians per million train-photo pixels (at working size), capped by
     max_gaussians; below the initial cloud there is no growth. 0 (default):
-    max_gaussians alone. Measured (docs/benchmarks.md, issue 24 fourth stop): 2,700
+    max_gaussians alone. Measured (docs/findings.md): 2,700
     is the knee of bench's reconstruct (17k Gaussians, the PSNR of 25k, 3-12 % less
     time), but on bench seed 0 the whole chain's mIoU fell 0.448/0.399 -> 0.355/0.362
     and herzjesu_p8 lost 0.5 dB held-out, so it is not the default."""
@@ -124,7 +123,7 @@ class Config:
     photo collections report: the photo's embedding is fitted to its left half (Adam
     on the L1 error, this many steps, everything else frozen) and its right half is
     scored. 0 = skip that figure. 50 steps score within 0.04 dB of 100 in half the
-    time (bench seed 1; docs/benchmarks.md, issue 44)."""
+    time (bench seed 1; docs/findings.md)."""
     backend: str = "auto"
     import_dir: str = ""
     """Folder with the authors' released WE-GS model; empty = train."""

@@ -12,7 +12,7 @@ out, the others are weighted by p = 1 − ū_T:
 
 The paper's form trains the encoder on p·x but every code is encoded from x; the
 authors' code's form does not have that mismatch and scores higher on the accuracy
-benchmark's test seeds (issue 22), so it is the default; `--variant paper` keeps
+benchmark's test seeds, so it is the default; `--variant paper` keeps
 the paper's. With λ = 0.001 and the cosine per sample (`cos_axis = "batch"`: the code's quirk).
 Adam (lr 1e-4), batch 64, up to 100 epochs, seeded. A held-out split of segments
 (`heldout_fraction`) is scored after every epoch; training stops when its loss has
@@ -68,7 +68,7 @@ class Config:
     encoder learns the unweighted features it later encodes), the paper's text
     "input_and_target" (`--variant paper`), or "none" (LangSplat: no uncertainty).
     The accuracy benchmark's test seeds put loss_only +0.051 mIoU [+0.014, +0.094]
-    above input_and_target (docs/benchmarks.md, issue 22)."""
+    above input_and_target (docs/findings.md)."""
     tau_u: float = 0.9
     """Segments with mean U_T above this are left out (1.0: none, as the code)."""
     cos_axis: Literal["sample", "batch"] = "sample"

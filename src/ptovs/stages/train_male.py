@@ -19,7 +19,7 @@ Rendering: `renderer = "sparse"` (default) builds each view's blend weights W_v
 once (kept in RAM up to `cache_mb`, spilled to memory-mapped files beyond it), so a
 step is W_v · normalize(f) and W_vᵀ · g; `"raster"` rasterises every step.
 
-Lift (`mode = "lift"`, the default since issue 22: as accurate as the optimiser on
+Lift (`mode = "lift"`, the default: as accurate as the optimiser on
 the accuracy benchmark, a quarter of its time): no optimisation; each Gaussian's feature
 per level and slot is its blend- and mask-weighted mean 512-d segment feature over the
 train views, Σ_v W_vᵀ (m_v ⊙ F_v[seg_v]) with the same weights m as the loss (so U_T
@@ -27,7 +27,7 @@ and U_A apply where `use_ut` / `use_ua` say), normalised and encoded by the AE. 
 view the weights are summed per (Gaussian, segment) and multiply the segment table
 once, so no per-pixel 512-vector is formed. `mode = "lift-codes"` takes the same mean
 over the 3-d target codes instead (the optimiser's starting point, `init = "data"`);
-docs/benchmarks.md measures both against the optimiser.
+docs/findings.md measures both against the optimiser.
 
 Stopping: up to `iterations` (30k, the paper's); with `stop = "plateau"` (default)
 training ends once the epoch-mean loss (one pass over all views) has stayed above
@@ -95,7 +95,7 @@ class Config:
     """Slots trained: the original and every novel render ("all"), or the original
     only ("orig": LangSplat's single-appearance field)."""
     mode: Literal["optimise", "lift", "lift-codes"] = "lift"
-    """How codes are fitted. "lift" (default since issue 22: it matches the
+    """How codes are fitted. "lift" (default: it matches the
     optimiser on the accuracy benchmark in a fraction of the time): no training,
     each Gaussian's blend- and mask-weighted mean 512-d segment feature over the
     train views, normalised and encoded by the AE; "optimise": Adam on the loss

@@ -86,7 +86,7 @@ def landmark_look(world: World) -> list[dict]:
     (Version 1 mixed the parts' own swatches weighted by size squared; the
     encoder could not tell landmarks apart through it: 42 % of bench photos and
     70 % of tiny photos picked their own landmark's style, against 82 % and 89 %
-    with the rendered views; work measured in docs/benchmarks.md.)
+    with the rendered views; work measured in docs/findings.md.)
     """
     d = world.to_dict()
     for p in d["parts"]:
