@@ -3,10 +3,6 @@
     make bench-accuracy                                   # what docs/results.md reports
     python bench/accuracy.py --preset small --seeds 0-17  # the same, by hand
     python bench/accuracy.py --report-only                # tables and plot from the results
-    python bench/accuracy.py --preset bench --seeds 0-2 --dev 0-2 \\
-        --data data/accuracy-bench --work work/accuracy-bench           # the ranking check:
-    python bench/accuracy.py --preset small --seeds 0-2 --dev 0-2 --report-only \\
-        --data data/accuracy --work work/accuracy --compare work/accuracy-bench
     make bench-multiapp                                   # in stand-in 5's world (--standin 5)
 
 Every seed is a new synthetic landmark (`ptovs synth-scene`, written for the
@@ -39,9 +35,6 @@ view, query) pair:
   on request only (--labels):
   no-uncertainty-ae, lift-codes   Table 3 row 3 (train-ae unweighted), the
                       code-space lift (each Gaussian's mean target code)
-  ideal-novel         the photos' own features in the original slot and clean
-                      ones in the novel slots: the multi-appearance headroom
-  2d-old, male-old    the old front end (graph segments, fixed 20/7 px filters)
   male-truth, langsplat-truth, no-multi-appearance-truth   Table 3 rows with the
                       truth part masks as segments (the paper's SAM setting's bound)
   same-appearance-truth, select-random-truth   Table 4 on truth segments (compare
@@ -109,9 +102,6 @@ CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
         )
     },
     "oracle": ("male", {}),  # + the clean features' import_dir (`import_features`)
-    # the headroom row: the photos' own features in the original slot,
-    # clean features in the novel slots (`import_features`)
-    "ideal-novel": ("male", {}),
     # Table 4: which targets the novel slots get: the same appearance in
     # every novel slot, and the selection without its quality constraint, without
     # its diversity constraint, without both; and ε_q on a normalised error
@@ -124,11 +114,6 @@ CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
         f"quality-{m}": ("male", {"render-appearances": [f"quality_metric={m}"]})
         for m in ("l1-relative", "dssim")
     },
-    # the defaults before the hier segmenter (one graph pass per level, fixed 20/7 px filters)
-    "male-old": (
-        "male",
-        {"extract-features": ["segmenter=graph"], "query": ["filter_ref=0"]},
-    ),
     # Table 3 rows with perfect segments: the synthetic truth's part masks
     # (`segmenter = "truth"`: the paper's own SAM setting as an upper bound)
     **{
@@ -143,11 +128,9 @@ CHAIN_LABELS.update({
     for k in ("same-appearance", "select-random")
 })  # fmt: skip
 # measured only when asked for (--labels), kept out of the default run so that
-# `make bench-accuracy` stays within its time: the old front end and Table 3 and 4
-# rows under truth segments (`make bench-upstream`, `make bench-multiapp`)
+# `make bench-accuracy` stays within its time: Table 3 and 4 rows under truth
+# segments (`make bench-multiapp`)
 UPSTREAM_LABELS = (
-    "2d-old",
-    "male-old",
     "male-truth",
     "langsplat-truth",
     "no-multi-appearance-truth",
@@ -166,15 +149,12 @@ TARGET_LABELS = (
 OPTIONAL_LABELS = (
     "no-uncertainty-ae",
     "lift-codes",
-    "ideal-novel",
     *UPSTREAM_LABELS,
     *TARGET_LABELS,
 )
 CHAIN_LABELS.update({v: (v, {}) for v in ("no-uncertainty-ae", "lift-codes")})
-FEATURE_LABELS = ("2d", "2d-ae", "2d-nosmooth", "2d-best", "2d-truth", "2d-old")
-OLD_SEGMENTS = ["images=orig", "segmenter=graph"]  # extract-features, for 2d-old
+FEATURE_LABELS = ("2d", "2d-ae", "2d-nosmooth", "2d-best", "2d-truth")
 TRUTH_SEGMENTS = ["images=orig", "segmenter=truth"]  # extract-features, for 2d-truth
-OTHER_SEGMENTS = {"2d-truth": TRUTH_SEGMENTS, "2d-old": OLD_SEGMENTS}
 ALL_LABELS = ("male", *FEATURE_LABELS, *(k for k in CHAIN_LABELS if k != "male"))
 LABELS = tuple(k for k in ALL_LABELS if k not in OPTIONAL_LABELS)  # the default run
 CHAIN_LOSS = (  # the chain from the photo's features to the fused field
@@ -182,7 +162,6 @@ CHAIN_LOSS = (  # the chain from the photo's features to the fused field
     "2d-best",
     "2d-nosmooth",
     "2d",
-    "2d-old",
     "2d-ae",
     "slot-orig",
     "slot-nov1",
@@ -284,29 +263,15 @@ def _chain_pairs(ctx, ref, variant: str, sets: dict) -> tuple[list[dict], dict]:
     return pairs, secs
 
 
-IMPORT_LABELS = ("oracle", "ideal-novel")  # chains on imported features
-
-
-def _import_folder(ref, scene: Path, work: Path, label: str) -> Path:
-    return work / label / f"{scene.name}-{ref.key()[:12]}" / "features"
-
-
-def slot_sources(label: str, slots: list[str]) -> dict[str, str]:
-    """Whose features each appearance slot of an import label gets: "clean" (the
-    photo re-rendered under neutral light without occluders) or "own" (the
-    photo's, as the full method extracts them)."""
-    if label not in IMPORT_LABELS:
-        raise ValueError(f"{label!r} imports no features")
-    own_orig = label == "ideal-novel"
-    return {app: ("own" if own_orig and app == "orig" else "clean")
-            for app in ["orig", *slots]}  # fmt: skip
+def _oracle_folder(ref, scene: Path, work: Path) -> Path:
+    return work / "oracle" / f"{scene.name}-{ref.key()[:12]}" / "features"
 
 
 def _label_chain(ref, scene: Path, work: Path, label: str) -> tuple[str, dict]:
     """The ptovs.variants name and the --set items a chain label runs."""
     variant, sets = CHAIN_LABELS[label]
-    if label in IMPORT_LABELS:
-        folder = _import_folder(ref, scene, work, label).resolve()
+    if label == "oracle":
+        folder = _oracle_folder(ref, scene, work).resolve()
         sets = {"extract-features": [f"import_dir={folder}"]}
     return variant, sets
 
@@ -319,11 +284,11 @@ def label_key(ctx, ref, scene: Path, work: Path, label: str) -> str:
     from ptovs.variants import variant_sets
 
     if label in FEATURE_LABELS:
-        items = OTHER_SEGMENTS.get(label, ["images=orig"])
+        items = TRUTH_SEGMENTS if label == "2d-truth" else ["images=orig"]
         keys = [Chain(ctx, ref, {"extract-features": items}).key("extract-features")]
         if label == "2d-ae":
             keys.append(Chain(ctx, ref).key("train-ae"))
-        if label not in ("2d-best", "2d-old"):  # the query's knobs decide the mask
+        if label != "2d-best":  # the query's knobs decide the mask
             query = canonical_json(Chain(ctx, ref).config("query"))
             keys.append(hashlib.sha256(query.encode()).hexdigest()[:16])
         return "+".join(keys)
@@ -331,27 +296,21 @@ def label_key(ctx, ref, scene: Path, work: Path, label: str) -> str:
     return Chain(ctx, ref, variant_sets(variant, sets)).key("evaluate")
 
 
-def import_features(ctx, ref, scene: Path, work: Path, label: str) -> Path:
-    """The LangSplat folder an import label's chain reads (cached).
-
-    Every photo re-rendered clean (`clean_scene`, shared by both labels), its
-    segment features extracted exactly as the photos' are; written for the original
-    and every render slot of the full method's chain as `slot_sources` says:
-    `oracle` clean everywhere (so uncertainty is 0 and every slot sees clean
-    features); `ideal-novel` the photo's own features in the original slot and
-    clean ones in the novel slots (the best any novel appearance could give).
-    """
+def import_features(ctx, ref, scene: Path, work: Path) -> Path:
+    """The LangSplat folder `oracle`'s chain reads (cached): every photo re-rendered
+    clean (`clean_scene`), its segment features extracted exactly as the photos'
+    are, written for the original and every render slot of the full method's chain
+    (so uncertainty is 0 and every slot sees clean features)."""
     from ptovs.artifacts import read_json_dataset
     from ptovs.features import SegmentFeatures, langsplat_suffix, write_langsplat
     from ptovs.stage import Chain, RunContext, resolve_scene
     from ptovs.synthetic.generate import clean_scene
 
-    folder = _import_folder(ref, scene, work, label)
+    folder = _oracle_folder(ref, scene, work)
     if (folder / "done").is_file():
         return folder
-    root = _import_folder(ref, scene, work, "oracle").parent
-    clean = clean_scene(scene, root / "data" / scene.name)
-    octx = RunContext(root / "work", ctx.config)
+    clean = clean_scene(scene, folder.parent / "data" / scene.name)
+    octx = RunContext(folder.parent / "work", ctx.config)
     oref = resolve_scene(octx, None, clean)
     art, _ = _build(Chain(octx, oref, {"extract-features": ["images=orig"]}),
                     "extract-features")  # fmt: skip
@@ -360,21 +319,12 @@ def import_features(ctx, ref, scene: Path, work: Path, label: str) -> Path:
     slots = read_json_dataset(renders.root()["slots_json"])["slots"]
     renders.close()
     novel = [s for s in slots if s != "self"]
-    source = slot_sources(label, slots)
-    own = None
-    if "own" in source.values():
-        own, _ = _build(Chain(ctx, ref), "extract-features")
     for name in art.names():
-        stem = Path(name).stem
-        feats = {"clean": SegmentFeatures.from_view(art[name], "orig")}
-        if own is not None:
-            feats["own"] = SegmentFeatures.from_view(own[name], "orig")
-        for app, src in source.items():
-            write_langsplat(folder, stem, feats[src], levels,
+        feats = SegmentFeatures.from_view(art[name], "orig")
+        for app in ["orig", *slots]:
+            write_langsplat(folder, Path(name).stem, feats, levels,
                             langsplat_suffix(app, novel))  # fmt: skip
     art.close()
-    if own is not None:
-        own.close()
     (folder / "done").write_text("ok\n")
     return folder
 
@@ -454,11 +404,10 @@ def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
 
     fe, _ = _build(Chain(ctx, ref, {"extract-features": ["images=orig"]}),
                    "extract-features")  # fmt: skip
-    others = {  # the labels read from other segments' features
-        lab: _build(Chain(ctx, ref, {"extract-features": items}), "extract-features")[0]
-        for lab, items in OTHER_SEGMENTS.items()
-        if lab in labels
-    }
+    truth = None  # 2d-truth reads the truth part masks' features
+    if "2d-truth" in labels:
+        truth_chain = Chain(ctx, ref, {"extract-features": TRUTH_SEGMENTS})
+        truth, _ = _build(truth_chain, "extract-features")
     male = Chain(ctx, ref)
     ae = None
     if "2d-ae" in labels:
@@ -467,7 +416,6 @@ def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
         ae_art.close()
     settings = male.config("query").settings()
     raw = dataclasses.replace(settings, smooth_kernel=1, majority=1)
-    fixed = dataclasses.replace(settings, smooth_kernel=20, majority=7, filter_ref=0.0)
     sc = ref.load()
     emb, idx, canon, bg = phrase_table(sc)
     out: dict[str, list[dict]] = {lab: [] for lab in FEATURE_LABELS if lab in labels}
@@ -483,11 +431,9 @@ def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
                      (("2d", settings), ("2d-nosmooth", raw)) if lab in out]  # fmt: skip
         if "2d-ae" in out:
             runs.append(("2d-ae", dense_cos(sf, emb, ae), settings))
-        for lab, art in others.items():
-            other = SegmentFeatures.from_view(art[view.name], "orig")
-            runs.append(
-                (lab, dense_cos(other, emb), fixed if lab == "2d-old" else settings)
-            )
+        if truth is not None:
+            other = SegmentFeatures.from_view(truth[view.name], "orig")
+            runs.append(("2d-truth", dense_cos(other, emb), settings))
         for cat, gt in gts.items():
             if not gt.any():
                 continue
@@ -501,8 +447,8 @@ def feature_pairs(ctx, ref, labels: list[str]) -> dict[str, list[dict]]:
                 m = pair_metrics(best[1], gt)
                 out["2d-best"].append({"view": view.name, "query": cat, **m})
     fe.close()
-    for art in others.values():
-        art.close()
+    if truth is not None:
+        truth.close()
     return out
 
 
@@ -553,8 +499,8 @@ def run_seed(args: argparse.Namespace, seed: int) -> None:
                 wall = time.perf_counter() - t0
                 res["labels"][lab] = _entry(pairs, {}, wall, keys[lab])
         else:
-            if label in IMPORT_LABELS:
-                import_features(ctx, ref, scene, args.work, label)
+            if label == "oracle":
+                import_features(ctx, ref, scene, args.work)
             variant, sets = _label_chain(ref, scene, args.work, label)
             pairs, secs = _chain_pairs(ctx, ref, variant, sets)
             wall = time.perf_counter() - t0
@@ -783,9 +729,6 @@ def report(args: argparse.Namespace) -> str:
     md += chain_loss(results)
     md += ["", "### Time", ""]
     md += _time_lines(results)
-    if args.compare:
-        md += ["", f"### Ranking against `{args.compare}`", ""]
-        md += compare(args, results, labels)
     out = "\n".join(md) + "\n"
     (args.work / "accuracy.json").write_text(json.dumps(_jsonable(summaries), indent=1))
     (args.work / "accuracy.md").write_text(out)
@@ -955,59 +898,6 @@ def _time_lines(results: dict[int, dict]) -> list[str]:
     ]
 
 
-def compare(
-    args: argparse.Namespace, results: dict[int, dict], labels: list[str]
-) -> list[str]:
-    """Does this run rank the variants as the other one does? (Kendall's tau over
-    the variants both have, and the pairs they order differently.)"""
-    other = {}
-    for path in sorted((args.compare / "results").glob("*.json")):
-        res = json.loads(path.read_text())
-        other[res["seed"]] = res
-    a, b = summarise(results, labels), summarise(other, labels)
-    common = [lab for lab in labels if lab in a and lab in b]
-    x = np.array([a[lab]["miou"].mean for lab in common])
-    y = np.array([b[lab]["miou"].mean for lab in common])
-    conc = disc = 0
-    flips = []
-    for i in range(len(common)):
-        for j in range(i + 1, len(common)):
-            s = np.sign(x[i] - x[j]) * np.sign(y[i] - y[j])
-            conc += s > 0
-            disc += s < 0
-            if s < 0 and abs(y[i] - y[j]) > 0.02 and abs(x[i] - x[j]) > 0.02:
-                flips.append(f"{common[i]} vs {common[j]}")
-    tau = (conc - disc) / max(1, conc + disc)
-    lines = [
-        f"Other run: {sorted(other)} seeds of `{next(iter(other.values()))['preset']}`"
-        if other
-        else "Other run: no results",
-        "",
-        "| variant | mIoU here | mIoU there | rank here | rank there |",
-        "|---|---|---|---|---|",
-    ]
-    rx = {
-        lab: r
-        for r, lab in enumerate(sorted(common, key=lambda k: -a[k]["miou"].mean), 1)
-    }
-    ry = {
-        lab: r
-        for r, lab in enumerate(sorted(common, key=lambda k: -b[k]["miou"].mean), 1)
-    }
-    for lab in sorted(common, key=lambda k: rx[k]):
-        lines.append(
-            f"| {lab} | {a[lab]['miou'].mean:.3f} | {b[lab]['miou'].mean:.3f} | "
-            f"{rx[lab]} | {ry[lab]} |"
-        )
-    lines += [
-        "",
-        f"Kendall's tau {tau:+.2f} over {len(common)} variants ({conc} pairs ordered "
-        f"alike, {disc} not); pairs ordered differently where both runs differ by "
-        f"more than 0.02: {', '.join(flips) if flips else 'none'}.",
-    ]
-    return lines
-
-
 def _plot(summ: dict, path: Path) -> None:
     """Language-stage time (log x) against the paired mIoU difference to the full
     method, with its 95 % cluster-bootstrap interval (OpenCV)."""
@@ -1097,8 +987,6 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--base", default="male", choices=ALL_LABELS,
                     help="the label every difference is paired against (male-truth "
                          "for the rows on truth segments)")  # fmt: skip
-    ap.add_argument("--compare", type=Path, default=None,
-                    help="another run's --work: compare the variants' ranking")  # fmt: skip
     ap.add_argument("--plot", type=Path, default=None,
                     help="write the speed-against-error plot here")  # fmt: skip
     args = ap.parse_args(argv)

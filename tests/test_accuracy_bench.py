@@ -178,19 +178,6 @@ def test_best_union_is_the_best_subset() -> None:
         assert not mask[labels < 0].any()
 
 
-def test_import_labels_say_whose_features_each_slot_gets() -> None:
-    acc = _bench()
-    slots = ["nov1", "nov2", "self"]
-    assert set(acc.slot_sources("oracle", slots).values()) == {"clean"}
-    ideal = acc.slot_sources("ideal-novel", slots)
-    assert ideal == {"orig": "own", "nov1": "clean", "nov2": "clean", "self": "clean"}
-    with pytest.raises(ValueError):
-        acc.slot_sources("male", slots)
-    # both read an import folder of their own; the default run measures neither new
-    assert "ideal-novel" in acc.ALL_LABELS and "ideal-novel" not in acc.LABELS
-    assert "oracle" in acc.LABELS
-
-
 def test_target_labels_and_the_renders_they_log(tmp_path: Path) -> None:
     """Table 4's labels are on request; the report says what the novel
     slots were rendered from; a scene of another stand-in's world is refused."""
