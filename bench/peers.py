@@ -1,18 +1,15 @@
 """Reconstruct beside OpenSplat on a CPU: the same photos, poses and iterations.
 
 python bench/peers.py --opensplat-src DIR                  # build, then every scene
-python bench/peers.py --opensplat-src DIR --build-only     # build (or find) it only
 python bench/peers.py --opensplat-src DIR --fetchcontent DEPS --scenes herzjesu_p8 \
     --iterations 500                                       # what the figures used
 
 OpenSplat (C++ on libtorch; https://github.com/pierotofy/OpenSplat, AGPL-3.0) is
 built from a source tree you give (`--opensplat-src`; nothing of it is in this
-repository) against this environment's torch (`torch.utils.cmake_prefix_path`) and
-the system's OpenCV (Debian: `apt install libopencv-dev`), with `-DGPU_RUNTIME=CPU`,
-into `<work>/build/<id>/` (`--build-cache DIR` elsewhere; a finished build is
-reused). Its CMake fetches three header libraries at configure time; without a
-network, `--fetchcontent DEPS` holds their sources as `DEPS/nlohmann_json`,
-`DEPS/nanoflann` and `DEPS/cxxopts` (the tags its CMakeLists.txt names).
+repository) against this environment's torch and the system's OpenCV (Debian: `apt
+install libopencv-dev`), with `-DGPU_RUNTIME=CPU`, into `<work>/build/<id>/` (reused
+once built). Without a network, `--fetchcontent DEPS` holds the sources of its CMake
+downloads as `DEPS/nlohmann_json`, `DEPS/nanoflann` and `DEPS/cxxopts`.
 
 Scenes (`--scenes`; default `herzjesu_p8 fountain_p11 bench:0`): a real set from
 `--real DIR`, posed once by `ptovs sfm` (every 10th photo held out), or `bench:SEED`,
@@ -30,9 +27,8 @@ Parts (`--parts`):
          held-out PSNR (OpenSplat's PLY both ways, every pixel; ptovs's stage
          figures), OpenSplat's PSNR curve (a PLY every tenth of the run), and ptovs
          plain 3DGS (`wild=false`), OpenSplat's like-for-like peer
-  reach  whole ptovs runs at fewer steps (`--reach-steps`; default 0.1, 0.2, 0.4 and
-         0.6 of --iterations), so that each variant's time to OpenSplat's best
-         held-out PSNR is read off measured points (linear between them)
+  reach  whole ptovs runs at 0.1, 0.2, 0.4 and 0.6 of --iterations: each variant's
+         time to OpenSplat's best held-out PSNR, linear between measured points
 
 Results: <work>/peers.json (a part finished at these --iterations is kept; a run
 cut off goes on), then markdown tables.
@@ -557,10 +553,10 @@ def run_scene(args: argparse.Namespace, build: dict, spec: str, rec: dict,
 
     def once(key: str, make) -> dict:
         """A part's record: kept from an earlier run at these iterations (a run cut
-        off goes on where it stopped; --fresh redoes it), else made and saved."""
+        off goes on where it stopped), else made and saved."""
         old = rec.get(key)
         done = old and ("wall_s" in old or "psnr_depth_order_vs_theirs" in old)
-        if not args.fresh and done and old.get("for_iterations") == n:
+        if done and old.get("for_iterations") == n:
             print(f"{spec}: {key} kept from {old.get('date')}", file=sys.stderr)
             return old
         new = make()
@@ -574,7 +570,7 @@ def run_scene(args: argparse.Namespace, build: dict, spec: str, rec: dict,
             binary, proj, args.work / "os" / tag / "check", scene, tests[0], t, frame))  # fmt: skip
     if "same" in args.parts:
         out = args.work / "os" / tag / "same"
-        every = args.save_every or max(1, n // 10)
+        every = max(1, n // 10)
 
         def opensplat() -> dict:
             run = run_opensplat(binary, proj, out, n, t, info["val_image"], every=every)
@@ -592,7 +588,7 @@ def run_scene(args: argparse.Namespace, build: dict, spec: str, rec: dict,
                                              *VARIANTS["ptovs_plain"]))  # fmt: skip
 
     if "reach" in args.parts and "opensplat" in rec:
-        steps = args.reach_steps or sorted({max(1, round(n * f)) for f in REACH})
+        steps = sorted({max(1, round(n * f)) for f in REACH})
         for key, sets in VARIANTS.items():
             for k in (k for k in steps if k < n):
                 once(f"{key}_reach_{k}",
@@ -650,12 +646,6 @@ def main() -> None:
                    help="offline sources of its CMake downloads: DEPS/{nlohmann_json,"
                    "nanoflann,cxxopts}")  # fmt: skip
     p.add_argument("--work", type=Path, default=ROOT / "work" / "peers")
-    p.add_argument("--build-cache", type=Path, default=None, metavar="DIR",
-                   help="where builds are kept (default <work>/build)")  # fmt: skip
-    p.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
-                   help="compile jobs")  # fmt: skip
-    p.add_argument("--build-only", action="store_true",
-                   help="build (or find the cached build) and stop")  # fmt: skip
     p.add_argument("--real", type=Path, default=ROOT / "data" / "real", metavar="DIR",
                    help="the real photo sets (herzjesu_p8/, fountain_p11/)")  # fmt: skip
     p.add_argument("--scenes", nargs="+",
@@ -663,23 +653,13 @@ def main() -> None:
                    help="real set names and bench:SEED")  # fmt: skip
     p.add_argument("--parts", nargs="+", default=["check", "same", "reach"],
                    choices=["check", "same", "reach"])  # fmt: skip
-    p.add_argument("--reach-steps", type=int, nargs="+", default=None, metavar="N",
-                   help="ptovs's shorter runs for its time to OpenSplat's best PSNR "
-                   "(default: 0.1, 0.2, 0.4 and 0.6 of --iterations)")  # fmt: skip
     p.add_argument("--iterations", type=int, default=2500)
     p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--save-every", type=int, default=0,
-                   help="OpenSplat saves a PLY every N steps for its PSNR curve "
-                   "(default: a tenth of --iterations)")  # fmt: skip
-    p.add_argument("--fresh", action="store_true",
-                   help="redo every part; by default a part an earlier run finished at "
-                   "these --iterations is kept (a run cut off goes on)")  # fmt: skip
     args = p.parse_args()
     results = Results(args.work / "peers.json")
     try:
-        build = build_opensplat(args.opensplat_src,
-                                args.build_cache or args.work / "build",
-                                args.fetchcontent, args.jobs)  # fmt: skip
+        build = build_opensplat(args.opensplat_src, args.work / "build",
+                                args.fetchcontent, os.cpu_count() or 1)  # fmt: skip
     except RuntimeError as exc:
         results["build"] = {"failed": str(exc)[-2000:]}
         results.save()
@@ -689,8 +669,6 @@ def main() -> None:
     results.save()
     print(f"OpenSplat {build.get('version', '')} ({build['source_id']}): "
           f"{build['binary']}")  # fmt: skip
-    if args.build_only:
-        return
     for spec in args.scenes:
         rec = results.setdefault("scenes", {}).setdefault(spec, {})
         rec["date"] = time.strftime("%Y-%m-%d %H:%M")
