@@ -54,7 +54,6 @@ on the crops the scene's ordinary photos give (`CODE_FIT`: whole parts under
 neutral, daylight, night and film light, and the pipeline's pieces), and the
 clean and daylight crops (`CODE_EVAL`) read through it: closed-set accuracy
 relative to the same crops read raw, and the two relevancy rows through the code.
-`--code-only` measures just these crops (no degradations, occluders or conflicts).
 """
 
 from __future__ import annotations
@@ -106,10 +105,6 @@ PHOTO_ROWS = {  # photo-level degradations of the clean render (uint8 RGB)
 # blend each part to the grey levels such a photograph keeps at 5 % / 3 % contrast
 REAL_SPREAD = 0.54
 LEVEL_ROWS = {"contrast-5-levels": 0.05, "contrast-3-levels": 0.03}
-# with --levels-only, also the whole photo at milder contrasts (reported, no band)
-# and at the registered rows' (the same crops as PHOTO_ROWS' contrast rows)
-SWEEP_ROWS = {"contrast-10": 0.10, "contrast-20": 0.20, "contrast-50": 0.50}
-LEVELS_ONLY_ROWS = {**SWEEP_ROWS, "contrast-5": 0.05, "contrast-3": 0.03}
 APPEARANCE_ROWS = ("daylight", "night", "bw", "sepia")
 # a piece's share of its part's pixels in the view
 PIECE_BINS = ((0.0, 0.1), (0.1, 0.4), (0.4, 0.7), (0.7, 1.01))
@@ -253,18 +248,10 @@ def encoder(version: int, world, preset: str = "small"):
 
 
 def collect(
-    seed: int,
-    n_cams: int,
-    scale: int = 3,
-    version: int = 5,
-    preset: str = "small",
-    code_only: bool = False,
-    levels_only: bool = False,
+    seed: int, n_cams: int, scale: int = 3, version: int = 5, preset: str = "small"
 ) -> dict:
     """Every row's crops (uint8) and truth labels for one calibration seed, in
-    the world the generator makes for stand-in `version` (its screen's textures);
-    with `code_only`, the scene code's rows alone (`CODE_FIT`, pieces); with
-    `levels_only`, the clean crops, the level rows and `LEVELS_ONLY_ROWS` alone."""
+    the world the generator makes for stand-in `version` (its screen's textures)."""
     plan = plan_scene(preset, seed, version)
     world = plan.world
     phrases, label = part_labels(world)
@@ -276,25 +263,17 @@ def collect(
 
     for ci, cam, rec, clean, parts in clean_views(plan, seed, n_cams, scale):
         crops = {k: prepare_crop(clean.image, m) for k, m in parts}
-        for row, c0 in () if code_only else LEVEL_ROWS.items():
+        for row, c0 in LEVEL_ROWS.items():
             for k, m in parts:  # the part's spread kept in thousandths
                 r = luminance_spread(clean.image, m)
                 low = _contrast(clean.image, level_contrast(c0, r))
                 add(row, ci, k, prepare_crop(low, m), round(1e3 * r))
-        if levels_only:
-            for k, c in crops.items():
-                add("clean", ci, k, c)
-            for row, c0 in LEVELS_ONLY_ROWS.items():
-                low = _contrast(clean.image, c0)
-                for k, m in parts:
-                    add(row, ci, k, prepare_crop(low, m))
-            continue
         known = {k for k, _ in parts}
         for k, share, m in pieces(clean.image, clean.part_id, 30 * scale * scale):
             row = _piece_row("piece", share)
             if row and k in known:
                 add(row, ci, k, prepare_crop(clean.image, m))
-        if scale != 1 and not code_only:  # the parts at the instrument's photo size
+        if scale != 1:  # the parts at the instrument's photo size
             rec1 = {"image_id": ci, **plan.cams[ci].to_dict()}
             small, _ = rerender(world, rec1, "neutral", "none", seed=seed)
             for k, _m in parts:
@@ -312,8 +291,6 @@ def collect(
             v, _ = rerender(world, rec, app, "none", seed=seed)
             for k, m in parts:  # same masks: the geometry does not change
                 add(row, ci, k, prepare_crop(v.image, m))
-        if code_only:
-            continue
         az = _azimuth(world, cam)
         crng = np.random.default_rng([seed, 42, ci])
         for k, c in crops.items():
@@ -433,8 +410,7 @@ def score(col: dict, version: int) -> dict:
             rel = relevancies(emb @ text.T, emb @ canon.T, truths[row]).tolist()
     res = {"seed": col["seed"], "phrases": col["phrases"], "rows": out,
            "relevancy": rel}  # fmt: skip
-    if any(r in embs for r in CODE_FIT if r != "clean"):  # not with --levels-only
-        res["code"] = code_rows(embs, truths, text, canon)
+    res["code"] = code_rows(embs, truths, text, canon)
     return res
 
 
@@ -574,14 +550,8 @@ def summarise(results: list[dict]) -> dict:
     return out
 
 
-def _one_seed(
-    n_cams: int, scale: int, version: int, code_only: bool, levels_only: bool,
-    t0: float, seed: int,
-) -> dict:  # fmt: skip
-    col = collect(
-        seed, n_cams, scale, version, code_only=code_only, levels_only=levels_only
-    )
-    out = score(col, version)
+def _one_seed(n_cams: int, scale: int, version: int, t0: float, seed: int) -> dict:
+    out = score(collect(seed, n_cams, scale, version), version)
     print(f"seed {seed}: {time.perf_counter() - t0:.0f} s", flush=True)
     return out
 
@@ -596,11 +566,6 @@ def main(argv: list[str] | None = None) -> None:
         "--out", type=Path, default=ROOT / "work" / "standin" / "profile.json"
     )
     ap.add_argument("--jobs", type=int, default=1, help="seeds measured at once")
-    ap.add_argument("--code-only", action="store_true",
-                    help="only the scene code's crops")  # fmt: skip
-    ap.add_argument("--levels-only", action="store_true",
-                    help="only the clean crops and the level contrast rows, "
-                    "with a sweep of milder contrasts")  # fmt: skip
     ap.add_argument("--summarise", type=Path, metavar="JSON",
                     help="re-read a saved profile (its crops' decisions) and print "
                     "its summary again, with the intervals; nothing is measured")  # fmt: skip
@@ -616,10 +581,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     t0 = time.perf_counter()
     seeds = seed_list(args.seeds)
-    job = functools.partial(
-        _one_seed, args.cams, args.scale, args.version, args.code_only,
-        args.levels_only, t0,
-    )  # fmt: skip
+    job = functools.partial(_one_seed, args.cams, args.scale, args.version, t0)
     if args.jobs > 1:
         ctx = multiprocessing.get_context("spawn")
         with ctx.Pool(args.jobs) as pool:
