@@ -14,10 +14,8 @@ import os
 import platform
 import shlex
 import shutil
-import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -48,10 +46,15 @@ class Results(dict):
         self["machine"] = machine()
 
     def save(self) -> None:
-        from ptovs.atomic import atomic_file
+        save_json(self.path, self)
 
-        with atomic_file(self.path, keep_suffix=False) as tmp:
-            tmp.write_text(json.dumps(self, indent=1))
+
+def save_json(path: Path, data: dict) -> None:
+    """`data` as indented JSON at `path`, written atomically."""
+    from ptovs.atomic import atomic_file
+
+    with atomic_file(path, keep_suffix=False) as tmp:
+        tmp.write_text(json.dumps(data, indent=1))
 
 
 def run_ptovs(work: Path, *args: str) -> tuple[float, float, str]:
@@ -240,35 +243,16 @@ def stage_command(args: argparse.Namespace, work: Path, scene: Path, n: int,
     return [*cmd, stage, "--scene", scene.name, "--data", str(scene)]
 
 
-def _kill_group(pid: int, killed: threading.Event) -> None:
-    killed.set()
-    try:
-        os.killpg(pid, signal.SIGKILL)
-    except ProcessLookupError:  # ended meanwhile
-        pass
-
-
-def run_stage(cmd: list[str], env: dict, logs: Path, stage: str,
-              budget: float | None) -> dict:  # fmt: skip
+def run_stage(cmd: list[str], env: dict, logs: Path, stage: str) -> dict:
     """One stage in its own process: wall s, its peak RSS (its own rusage from
-    wait4), exit status, stderr's tail on failure. Killed (with what it started)
-    after `budget` s."""
+    wait4), exit status, stderr's tail on failure."""
     out, err = logs / f"{stage}.out", logs / f"{stage}.err"
     with out.open("w") as fo, err.open("w") as fe:
         load0 = os.getloadavg()[0]
         t0 = time.perf_counter()
         proc = subprocess.Popen(cmd, env=env, stdout=fo, stderr=fe,
                                 start_new_session=True)  # fmt: skip
-        timer, killed = None, threading.Event()
-        if budget is not None:
-            timer = threading.Timer(budget, _kill_group, (proc.pid, killed))
-            timer.daemon = True
-            timer.start()
-        try:
-            _, status, usage = os.wait4(proc.pid, 0)
-        finally:
-            if timer is not None:
-                timer.cancel()
+        _, status, usage = os.wait4(proc.pid, 0)
         wall = time.perf_counter() - t0
     proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here, not by Popen
     # its CPU seconds and the machine's 1-min load average before and after: a
@@ -278,8 +262,6 @@ def run_stage(cmd: list[str], env: dict, logs: Path, stage: str,
            "load": [round(load0, 2), round(os.getloadavg()[0], 2)],
            "exit": proc.returncode, "cmd": shlex.join(cmd)}  # fmt: skip
     if proc.returncode != 0:
-        if killed.is_set():
-            res["timeout"] = True
         res["stderr_tail"] = err.read_text(errors="replace")[-3000:]
     return res
 
@@ -292,7 +274,7 @@ def fmt_s(rec: dict | None) -> str:
     if rec is None or "skipped" in rec:
         return "–"
     if rec.get("exit") != 0:
-        return "timeout" if rec.get("timeout") else f"failed ({rec.get('exit')})"
+        return f"failed ({rec.get('exit')})"
     return f"{rec['wall_s']:.1f}"
 
 
@@ -304,54 +286,7 @@ def report_stage(label: str, stage: str, rec: dict, extra: str = "") -> str:
     if rec["exit"] == 0:
         return ""
     print(rec["stderr_tail"][-1500:], file=sys.stderr)
-    return "the --timeout budget ran out" if rec.get("timeout") else f"{stage} failed"
-
-
-def add_run_options(p: argparse.ArgumentParser, what: str = "scene") -> None:
-    """The options a chain benchmark takes (bench/growth.py)."""
-    p.add_argument("--data", type=Path, default=None,
-                   help=f"where the {what} generated (default <work>/data)")  # fmt: skip
-    p.add_argument("--config", type=Path, default=ROOT / "configs" / "default.toml",
-                   help="the --config every stage gets (make all's default)")  # fmt: skip
-    p.add_argument("--set", action="append", default=[], metavar="STAGE.KEY=VALUE",
-                   help="passed to every stage's command (repeatable)")  # fmt: skip
-    p.add_argument("--timeout", type=float, default=None,
-                   help="wall budget of the whole run, s: the rest is skipped")  # fmt: skip
-
-
-def check_run_options(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    """Refuse a malformed --set item; make the paths absolute."""
-    for item in args.set:
-        section, dot, _ = item.partition("=")[0].partition(".")
-        if "=" not in item or not dot or section not in SECTIONS:
-            p.error(f"--set {item!r}: write STAGE.KEY=VALUE, STAGE one of "
-                    + ", ".join(SECTIONS))  # fmt: skip
-    args.work = args.work.resolve()
-    args.data = (args.data or args.work / "data").resolve()
-    args.config = args.config.resolve()
-
-
-def earlier_runs(
-    path: Path, results: dict, same: tuple[str, ...], old: dict | None = None
-) -> dict | None:
-    """An earlier results file at `path` (or its content `old`, already read), when
-    it measured the same setup (`same` keys of `results`) on the same CPU; else None."""
-    if old is None:
-        if not path.exists():
-            return None
-        old = json.loads(path.read_text())
-    if all(old.get(k) == results[k] for k in same) and all(
-        old.get("machine", {}).get(k) == results["machine"][k] for k in SAME_MACHINE
-    ):
-        return old
-    return None
-
-
-def write_results(path: Path, results: dict) -> None:
-    from ptovs.atomic import atomic_file
-
-    with atomic_file(path, keep_suffix=False) as tmp:
-        tmp.write_text(json.dumps(results, indent=1))
+    return f"{stage} failed"
 
 
 def thread_env(n: int) -> dict:

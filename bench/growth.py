@@ -1,65 +1,33 @@
 """How every stage's time, memory and quality grow with the collection.
 
-The default chain on one world at 100, 200, 400 and 763 photos, one size at a time:
-
 python bench/growth.py --preset landmark --seed 0 --photos 100 200 400 763 --threads 2 \
     --work work/growth --plot                          # what `make bench-growth` runs
-python bench/growth.py --preset bench landmark --photos 20 40 80 --work work/growth
-                                                       # the photo size varies too
 python bench/growth.py --preset small --photos 20 28 --set reconstruct.iterations=100 \
-    --work /tmp/growth_try --plot-to /tmp/growth_try/growth.png      # a short trial
-python bench/growth.py --work work/growth --report-only --plot   # table and plot again
+    --work /tmp/growth_try --plot                      # a short trial
 
 A size is N train photos of the preset's world (`ptovs synth-scene --preset P --seed S
 --photos N`: the labelled and test views, then the first other train photos, so a
 smaller collection is a subset of a larger one); an item PRESET:N of --photos is that
 preset's only. The scene <preset>_s<seed>_p<N> is generated under --data (default
-<work>/data) when missing (its time and peak RSS recorded) and kept. Then, for each
-(preset, N) in turn (never two at once), bench/common.py's run_stage runs every stage
-of the chain (src/ptovs/pipeline.py's PIPELINE) in its own process, exactly as `make
-all` does, on --threads threads, in the work folder <work>/<scene> emptied first
-(nothing is cached from another size):
+<work>/data) when missing and kept. Then, one size at a time, every stage of the chain
+(src/ptovs/pipeline.py's PIPELINE) runs in its own process exactly as `make all` runs
+it, on --threads threads, in the work folder <work>/<scene> emptied first:
 
     OMP_NUM_THREADS=T python -m ptovs --work-dir <work>/<scene> --config <config> -q \
         --threads T [--set STAGE.KEY=VALUE ...] <stage> --scene <scene> --data <scene dir>
 
-Per stage: wall s, peak RSS MB (os.wait4's ru_maxrss of the stage's process), the
-thread count, the exit status, and its output's quality figure, read after the stage
-in a separate process (so this script stays small and its pages never count in a
-stage's peak RSS):
+Per stage: wall s, peak RSS MB (os.wait4's ru_maxrss of its process), CPU s, the
+1-min load before and after, the exit status, and its output's quality figure (QUALITY;
+read in a separate process, so this script's pages never count in a stage's peak RSS;
+U_T's AUROC is counted from histograms of its float16 values: exact, memory-flat at 763
+photos). A failed stage ends that size's chain. Logs: <work>/<scene>/logs/.
 
-    reconstruct  test PSNR, dB: the artifact's root metrics_json["psnr_test"] (the
-                 field rendered with each test view's own embedding against the photo)
-    uncertainty  AUROC of U_T against the synthetic truth's transient masks of the
-                 train views (<scene>/synthetic/truth/<stem>.npz "transient"), every
-                 pixel, ties counted half: bench/extract.py's ut_auroc. The stage
-                 records none; it is counted here from histograms of U_T's float16
-                 values (exact, and memory-flat at 763 photos)
-    train-ae     held-out cosine: the artifact's root metrics_json["heldout_cos"]
-    evaluate     mIoU: <work>/<scene>/<scene>/evaluate.json's results[variant][scene]
-                 ["miou"] (the evaluate artifact's metrics_json)
-
-and per scene its train photos and their total pixels (ptovs.scene.load_scene: the
-working size of each train view). A failed stage ends that size's chain; `--timeout S`
-is a wall budget for the whole run (the stage running when it ends is killed, the rest
-skipped); `--resume` goes on with a size cut off before (by --timeout or a kill),
-keeping the stages growth.json records as done and their artifacts, so a run longer
-than one sitting is measured in parts (each stage's record has its CPU seconds and
-the 1-min load average before and after it: a stage that shared the machine shows
-it). Logs: <work>/<scene>/logs/<stage>.{out,err}.
-
-Results: <work>/growth.json (written after every stage; sizes measured by an earlier
-run with the same seed, --set items, config, threads and CPU are kept, and with
---resume those of another CPU too, each run naming its CPU; the config is compared by
-its content, not its path; a file of another setup is moved aside to
-growth.<date>.json, never overwritten, and with --resume it is an error: a resumed run
-never starts afresh, so no finished stage's work folder is emptied), then markdown
-tables: the scenes; a row a stage (and the chain's total), per size its seconds, peak
-MB and quality figure, then the exponent b of a·x^b fitted by least squares on log-log
-to wall time and to peak RSS, x the photos (over the sizes of one preset) and the total
-train pixels (over every size). `--plot` draws time and peak RSS against photos,
-log-log, a line a stage, to <work>/growth.png (`--plot-to PATH` elsewhere; the
-published one goes under docs/img with its figures).
+Results: <work>/growth.json (written after every stage; sizes an earlier run measured
+with the same seed, --set items, config content, threads and CPU are kept; a file of
+another setup is moved aside to growth.<date>.json), then markdown tables: per stage
+and size its seconds, peak MB and quality, and the exponent b of a·x^b fitted on
+log-log to wall time and peak RSS, x the photos (per preset) and the train pixels.
+`--plot` draws time and peak RSS against photos, log-log, to <work>/growth.png.
 """
 
 from __future__ import annotations
@@ -79,17 +47,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import (  # noqa: E402  (same folder)
     PRESETS,
     ROOT,
-    add_run_options,
-    check_run_options,
-    earlier_runs,
+    SAME_MACHINE,
+    SECTIONS,
     fmt_s,
     machine_facts,
     ok,
     report_stage,
     run_stage,
+    save_json,
     stage_command,
     thread_env,
-    write_results,
 )
 
 from ptovs.pipeline import PIPELINE  # noqa: E402  (stdlib only: torch stays out)
@@ -252,57 +219,30 @@ def scene_name(preset: str, seed: int, photos: int) -> str:
     return f"{preset}_s{seed}_p{photos}"  # synth-scene's name with --photos
 
 
-def run_size(args, results, save, preset: str, photos: int, env: dict,
-             deadline: float | None) -> bool:  # fmt: skip
-    """Generate (when missing) and run the chain on one size; False when the
-    --timeout budget ran out."""
+def run_size(args, results, save, preset: str, photos: int, env: dict) -> None:
+    """Generate (when missing) and run the chain on one size."""
     name = scene_name(preset, args.seed, photos)
     scene = args.data / name
     work = args.work / name
     logs = work / "logs"
-    old = results["runs"].get(name) if args.resume else None
-    if old and old.get("stages") and logs.is_dir():
-        # --resume: the stages done (recorded, their artifact on disk) are kept
-        run = old
-        run["stages"] = {s: r for s, r in old["stages"].items()
-                         if r.get("timeout") or "started" in r
-                         or ok(r) and (a := artifact_path(logs, s))
-                         and Path(a).exists()}  # fmt: skip
-        run.setdefault("resumed", []).append(
-            {"date": time.strftime("%Y-%m-%d %H:%M"),
-             "kept": [s for s, r in run["stages"].items() if ok(r)],
-             "commit": results["machine"].get("commit"),
-             "cpu": results["machine"].get("cpu_model")})  # fmt: skip
-    else:
-        shutil.rmtree(work, ignore_errors=True)
-        logs.mkdir(parents=True)
-        run = {"preset": preset, "photos_asked": photos, "scene": str(scene),
-               "date": time.strftime("%Y-%m-%d %H:%M"),
-               "commit": results["machine"].get("commit"),
-               "cpu": results["machine"].get("cpu_model"), "stages": {}}  # fmt: skip
-    results["runs"][name] = run
-
-    def left() -> float | None:
-        return None if deadline is None else deadline - time.perf_counter()
-
+    shutil.rmtree(work, ignore_errors=True)
+    logs.mkdir(parents=True)
+    run = results["runs"][name] = {
+        "preset": preset, "photos_asked": photos, "scene": str(scene),
+        "date": time.strftime("%Y-%m-%d %H:%M"),
+        "commit": results["machine"].get("commit"),
+        "cpu": results["machine"].get("cpu_model"), "stages": {},
+    }  # fmt: skip
     # the last file synth-scene writes: a killed generation is made again
     if (scene / "synthetic" / "truth" / "cameras.json").is_file():
         run["synth"] = {"reused": True}
     else:
-        if left() is not None and left() <= 0:
-            run["synth"] = {"skipped": "the --timeout budget ran out"}
-            save()
-            return False
         cmd = [sys.executable, "-m", "ptovs", "-q", "synth-scene", str(args.data),
                "--preset", preset, "--seed", str(args.seed), "--photos", str(photos)]  # fmt: skip
-        run["synth"] = run_stage(cmd, env, logs, "synth-scene", left())
-        print(f"{name}  {'synth-scene':<20} {fmt_s(run['synth']):>12}"
-              f"{' s' if ok(run['synth']) else ''}  {run['synth']['peak_rss_mb']:7.0f} MB",
-              file=sys.stderr, flush=True)  # fmt: skip
-        if not ok(run["synth"]):
-            print(run["synth"]["stderr_tail"][-1500:], file=sys.stderr)
+        run["synth"] = run_stage(cmd, env, logs, "synth-scene")
+        if report_stage(name, "synth-scene", run["synth"]):
             save()
-            return not run["synth"].get("timeout")
+            return
     facts = run_probe("scene", str(scene))
     if "error" in facts:
         facts["scene_error"] = facts.pop("error")
@@ -311,24 +251,11 @@ def run_size(args, results, save, preset: str, photos: int, env: dict,
 
     t0, stop = time.perf_counter(), ""
     for stage in PIPELINE:
-        if not stop and left() is not None and left() <= 0:
-            stop = "the --timeout budget ran out"
         if stop:
             run["stages"][stage] = {"skipped": stop}
             continue
-        if ok(run["stages"].get(stage)):  # kept by --resume
-            print(f"{name}  {stage:<20} {'kept':>12}", file=sys.stderr, flush=True)
-            continue
-        cut = run["stages"].get(stage)  # a stage --timeout or a kill cut off before
-        run["stages"][stage] = {"started": time.strftime("%Y-%m-%d %H:%M:%S")}
-        save()
         cmd = stage_command(args, work, scene, args.threads, stage)
-        rec = run["stages"][stage] = run_stage(cmd, env, logs, stage, left())
-        if cut:
-            # it went on from its checkpoint, if it has one: wall_s is this part only
-            rec["went_on_after"] = (
-                cut.get("wall_s") or f"a kill, started {cut.get('started')}"
-            )
+        rec = run["stages"][stage] = run_stage(cmd, env, logs, stage)
         rec["threads"] = args.threads
         if ok(rec):
             q = quality(stage, work, scene, logs)
@@ -338,11 +265,8 @@ def run_size(args, results, save, preset: str, photos: int, env: dict,
         save()
         qtxt = f"  {QUALITY[stage][0]} {fmt_q(stage, rec)}" if stage in QUALITY else ""
         stop = report_stage(name, stage, rec, qtxt)
-    run["total_s" if "resumed" not in run else "last_part_s"] = round(
-        time.perf_counter() - t0, 1
-    )
+    run["total_s"] = round(time.perf_counter() - t0, 1)
     save()
-    return not stop.startswith("the --timeout")
 
 
 # ------------------------------------------------------------- fits and tables
@@ -598,18 +522,23 @@ def main() -> None:
                    metavar="[PRESET:]N", help="train photos a size")  # fmt: skip
     p.add_argument("--threads", type=int, default=os.cpu_count() or 1)
     p.add_argument("--work", type=Path, default=ROOT / "work" / "growth")
-    add_run_options(p, "scenes are")
+    p.add_argument("--data", type=Path, default=None,
+                   help="where the scenes are generated (default <work>/data)")  # fmt: skip
+    p.add_argument("--config", type=Path, default=ROOT / "configs" / "default.toml",
+                   help="the --config every stage gets (make all's default)")  # fmt: skip
+    p.add_argument("--set", action="append", default=[], metavar="STAGE.KEY=VALUE",
+                   help="passed to every stage's command (repeatable)")  # fmt: skip
     p.add_argument("--plot", action="store_true",
                    help="draw the plot to <work>/growth.png")  # fmt: skip
-    p.add_argument("--plot-to", type=Path, default=None, metavar="PATH",
-                   help="draw the plot to PATH instead (implies --plot)")  # fmt: skip
-    p.add_argument("--resume", action="store_true",
-                   help="go on with a size cut off before (--timeout, a kill): keep its "
-                   "work folder and the stages growth.json records as done")  # fmt: skip
-    p.add_argument("--report-only", action="store_true",
-                   help="run nothing: the tables (and plot) of <work>/growth.json")  # fmt: skip
     args = p.parse_args()
-    check_run_options(p, args)
+    for item in args.set:
+        section, dot, _ = item.partition("=")[0].partition(".")
+        if "=" not in item or not dot or section not in SECTIONS:
+            p.error(f"--set {item!r}: write STAGE.KEY=VALUE, STAGE one of "
+                    + ", ".join(SECTIONS))  # fmt: skip
+    args.work = args.work.resolve()
+    args.data = (args.data or args.work / "data").resolve()
+    args.config = args.config.resolve()
     try:
         todo = sizes(args.preset, args.photos)
     except ValueError as exc:
@@ -617,20 +546,9 @@ def main() -> None:
     if args.threads < 1:
         p.error("--threads: at least 1")
     path = args.work / "growth.json"
-    plot_to = args.plot_to or (args.work / "growth.png" if args.plot else None)
-
-    if args.report_only:
-        if not path.exists():
-            p.error(f"--report-only: no {path}")
-        results = json.loads(path.read_text())
-        print_tables(results)
-        if plot_to:
-            plot(results, plot_to)
-        return
 
     args.work.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
-    deadline = None if args.timeout is None else t_start + args.timeout
     facts = machine_facts()
     results = {"machine": facts, "seed": args.seed, "set": list(args.set),
                "config": config_id(args.config), "config_path": str(args.config),
@@ -638,27 +556,13 @@ def main() -> None:
                "stages": list(PIPELINE),
                "quality": {s: f"{q}: {src}" for s, (q, src) in QUALITY.items()},
                "runs": {}}  # fmt: skip
-    prev = json.loads(path.read_text()) if path.exists() else None
-    if prev is not None:
+    if path.exists():
+        prev = json.loads(path.read_text())
         prev["config"] = config_id(prev.get("config", ""))
-    old = earlier_runs(path, results, SAME, prev)
-    if old:  # an earlier run of the same setup keeps its other sizes
-        results["runs"] = old.get("runs", {})
-    elif prev is not None:
-        differ = [k for k in SAME if prev.get(k) != results[k]]
-        if args.resume and differ:  # fail closed: never a fresh start under --resume
-            p.error(f"--resume: {path} measured another setup ({', '.join(differ)} "
-                    "differ); rerun with the same seed, --set, config and threads, or "
-                    "without --resume to start afresh (its file is then kept aside)")  # fmt: skip
-        if args.resume:
-            # the same setup on another CPU: a run cut off goes on here, and each
-            # run says where its parts ran ("cpu", and "resumed"'s entries)
+        if all(prev.get(k) == results[k] for k in SAME) and all(
+            prev.get("machine", {}).get(k) == facts[k] for k in SAME_MACHINE
+        ):  # an earlier run of the same setup keeps its other sizes
             results["runs"] = prev.get("runs", {})
-            for run in results["runs"].values():
-                run.setdefault("cpu", prev.get("machine", {}).get("cpu_model"))
-            print(f"{path}: measured on {prev.get('machine', {}).get('cpu_model')!r}, "
-                  f"going on on {facts.get('cpu_model')!r}: a stage's time is its "
-                  "machine's; compare times of one machine only", file=sys.stderr)  # fmt: skip
         else:  # another setup: its file is kept aside, never overwritten
             aside = path.with_name(f"growth.{time.strftime('%Y%m%d-%H%M%S')}.json")
             path.rename(aside)
@@ -666,21 +570,15 @@ def main() -> None:
                   f"kept as {aside}; this run starts a new file", file=sys.stderr)  # fmt: skip
 
     def save() -> None:
-        write_results(path, results)
+        save_json(path, results)
 
     cpus = os.cpu_count() or 1
     if args.threads > cpus:
         print(f"note: {args.threads} threads on {cpus} CPUs", file=sys.stderr)
     env = thread_env(args.threads)
     args.data.mkdir(parents=True, exist_ok=True)
-    going = True
     for preset, photos in todo:
-        if not going:
-            name = scene_name(preset, args.seed, photos)
-            results["runs"][name] = {"preset": preset, "photos_asked": photos,
-                                     "skipped": "the --timeout budget ran out"}  # fmt: skip
-            continue
-        going = run_size(args, results, save, preset, photos, env, deadline)
+        run_size(args, results, save, preset, photos, env)
     results["wall_s"] = round(time.perf_counter() - t_start, 1)
     save()
 
@@ -689,8 +587,8 @@ def main() -> None:
           + f"; {facts['cpu_model'] or facts['processor']}, {cpus} CPUs; "
           f"torch {facts.get('torch')}\n")  # fmt: skip
     print_tables(results)
-    if plot_to:
-        plot(results, plot_to)
+    if args.plot:
+        plot(results, args.work / "growth.png")
     print(f"results: {path}")
 
 
