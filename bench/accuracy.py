@@ -117,41 +117,22 @@ CHAIN_LABELS.update({
                     ("select-random", "selection=random"))
 })  # fmt: skip
 # measured only when asked for (--labels), kept out of the default run so that
-# `make bench-accuracy` stays within its time: Table 3 and 4 rows under truth
-# segments (`make bench-multiapp`)
-UPSTREAM_LABELS = (
-    "male-truth",
-    "langsplat-truth",
-    "no-multi-appearance-truth",
-    "same-appearance-truth",
-    "select-random-truth",
-)
+# `make bench-accuracy` stays within its time: Table 3 row 3, the code-space lift,
+# and Table 3 and 4 rows under truth segments (`make bench-multiapp`)
 OPTIONAL_LABELS = (
-    "no-uncertainty-ae",
-    "lift-codes",
-    *UPSTREAM_LABELS,
-)
+    "no-uncertainty-ae", "lift-codes", "male-truth", "langsplat-truth",
+    "no-multi-appearance-truth", "same-appearance-truth", "select-random-truth",
+)  # fmt: skip
 CHAIN_LABELS.update({v: (v, {}) for v in ("no-uncertainty-ae", "lift-codes")})
 FEATURE_LABELS = ("2d", "2d-ae", "2d-nosmooth", "2d-best", "2d-truth")
 TRUTH_SEGMENTS = ["images=orig", "segmenter=truth"]  # extract-features, for 2d-truth
 ALL_LABELS = ("male", *FEATURE_LABELS, *(k for k in CHAIN_LABELS if k != "male"))
 LABELS = tuple(k for k in ALL_LABELS if k not in OPTIONAL_LABELS)  # the default run
 CHAIN_LOSS = (  # the chain from the photo's features to the fused field
-    "2d-truth",
-    "2d-best",
-    "2d-nosmooth",
-    "2d",
-    "2d-ae",
-    "slot-orig",
-    "slot-nov1",
-    "slot-nov2",
-    "slot-nov3",
-    "male",
-    "imglvlmax",
-    "pixmax",
-    "pixavg",
-    "pixweighted",
-)
+    "2d-truth", "2d-best", "2d-nosmooth", "2d", "2d-ae",
+    "slot-orig", "slot-nov1", "slot-nov2", "slot-nov3",
+    "male", "imglvlmax", "pixmax", "pixavg", "pixweighted",
+)  # fmt: skip
 CEILINGS = ("oracle", "2d")
 ANSWERED = 0.1  # a cluster some method answers has a mean IoU of at least this
 
