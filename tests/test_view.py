@@ -673,11 +673,8 @@ def test_view_command_prints_the_url_and_stops_on_ctrl_c(view_work, tiny_scene_d
 
 
 def test_view_help_lists_the_options():
-    res = subprocess.run(
-        [sys.executable, "-m", "ptovs", "view", "--help"],
-        capture_output=True,
-        text=True,
-    )
-    assert res.returncode == 0
+    # in-process (`python -m ptovs --help` in a fresh process: tests/test_cli.py)
+    res = CliRunner().invoke(main, ["view", "--help"])
+    assert res.exit_code == 0, res.output
     for opt in ("--host", "--port", "127.0.0.1", "8080", "--out-dir", "--allow-remote"):
-        assert opt in res.stdout
+        assert opt in res.output
