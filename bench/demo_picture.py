@@ -4,6 +4,9 @@ enlarged 3×.
 
     python bench/demo_picture.py                     # work/tiny_s0/query-out/male
     python bench/demo_picture.py --view 0003.jpg --out docs/img/demo_overlay.png
+
+bench/pictures.py redraws it with the README's other demo pictures (and the figures
+their captions quote).
 """
 
 from __future__ import annotations

@@ -366,3 +366,44 @@ def test_camera_path_passes_through_the_keyframes(tiny_scene_dir):
         assert np.allclose(got[:3, 3], key.cam_from_world[:3, 3], atol=1e-4)
     for a, b in zip(cams, cams[1:], strict=False):  # no jumps between frames
         assert np.linalg.norm(a.cam_from_world[:3, 3] - b.cam_from_world[:3, 3]) < 5
+
+
+# ------------------------------------------------------------------ table --
+
+
+def test_table_of_one_scene_folder_is_that_scenes_column(tiny_scene_dir, tmp_path):
+    """`--data` given one scene (not the folder of scenes) tables that scene, as
+    the folder of scenes does; its own subfolders are not scenes."""
+    work = tmp_path / "work"
+    one = _cli(work, "table", "--data", str(tiny_scene_dir))
+    assert one.exit_code == 0, one.output + repr(one.exception)
+    assert "| variant | tiny_s0 | mean |" in one.output
+    for sub in ("dense", "synthetic", "failed"):
+        assert sub not in one.output, one.output
+    every = _cli(work, "table", "--data", str(tiny_scene_dir.parent))
+    assert every.exit_code == 0 and every.output == one.output
+    # a failed scene shows as failed, and --strict says so with its status
+    (work / "tiny_s0").mkdir(parents=True, exist_ok=True)
+    (work / "tiny_s0" / "FAILED").write_text("log\nreconstruct failed: out of memory\n")
+    failed = _cli(work, "table", "--data", str(tiny_scene_dir), "--strict")
+    assert failed.exit_code == 1
+    assert "| male | failed | – |" in failed.output
+    assert "tiny_s0: failed (reconstruct failed: out of memory)" in failed.output
+
+
+def test_a_scene_folder_is_told_from_a_folder_of_scenes(tmp_path):
+    from ptovs.apps.table import is_scene, table_scenes
+
+    photos = tmp_path / "fountain"
+    photos.mkdir()
+    for i in range(3):
+        (photos / f"p{i}.jpg").write_bytes(b"x")
+    assert is_scene(photos) and table_scenes(photos) == [photos]
+    scenes = tmp_path / "scenes"
+    for name in ("a", "b"):
+        (scenes / name / "dense" / "sparse").mkdir(parents=True)
+    (scenes / "label" / "a").mkdir(parents=True)
+    (scenes / "cover.jpg").write_bytes(b"x")  # a stray photo beside posed scenes
+    assert not is_scene(scenes)
+    assert table_scenes(scenes) == [scenes / "a", scenes / "b"]
+    assert is_scene(scenes / "a") and table_scenes(scenes / "a") == [scenes / "a"]

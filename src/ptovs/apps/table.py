@@ -8,6 +8,8 @@ exists; it runs nothing. A scene without one is marked "failed" when its
 `<work>/<scene>/FAILED` marker exists (the Makefile's batch target writes it
 when a stage fails, with the log's tail) and "–" (not run) otherwise; the mean
 column is over the scenes with numbers and starred when some are missing.
+--data may also be one scene folder (posed, or a folder of photos): the table
+then has that scene's column only.
 """
 
 from __future__ import annotations
@@ -18,10 +20,36 @@ from pathlib import Path
 import click
 
 from ptovs.chain import RunContext
-from ptovs.pipeline import scene_folders
+from ptovs.pipeline import check_scene_names, scene_folders
 from ptovs.variants import VARIANTS
 
 FAILED_MARKER = "FAILED"
+
+
+def is_scene(folder: Path) -> bool:
+    """Whether `folder` is itself a scene rather than a folder of scenes: a posed
+    scene (`dense/` or `sparse/` in it), or photos (in it or in `images/`) beside
+    no posed scene."""
+    from ptovs.sfm import photo_dir
+
+    def posed(p: Path) -> bool:
+        return (p / "dense").is_dir() or (p / "sparse").is_dir()
+
+    if posed(folder):
+        return True
+    if photo_dir(folder) is None:
+        return False
+    return not any(posed(p) for p in folder.iterdir() if p.is_dir())
+
+
+def table_scenes(data: Path) -> list[Path]:
+    """The scene folders the table covers: `data` itself when it is a scene, else
+    those under it (`scene_folders`)."""
+    if is_scene(data):
+        folder = data if data.name not in ("", "..") else data.resolve()
+        check_scene_names([folder.name], f"--data {data}")
+        return [folder]
+    return scene_folders(data)
 
 
 def collect(
@@ -36,7 +64,7 @@ def collect(
 
     rows: dict[str, dict] = {v: {} for v in variants}
     failures: dict[str, str] = {}
-    for folder in scene_folders(data):
+    for folder in table_scenes(data):
         name = folder.name
         marker = obj.work_dir / name / FAILED_MARKER
         if marker.is_file():
@@ -67,7 +95,7 @@ def collect(
 
 @click.command(name="table")
 @click.option("--data", type=click.Path(path_type=Path, file_okay=False), required=True,
-              help="Folder of scene folders (e.g. the seven PT-OVS scenes).")  # fmt: skip
+              help="Folder of scene folders (e.g. the seven PT-OVS scenes), or one scene.")  # fmt: skip
 @click.option("--variant", "variants", multiple=True, default=("male",),
               type=click.Choice(list(VARIANTS)), show_default=True,
               help="Variant rows (repeatable).")  # fmt: skip
@@ -81,7 +109,8 @@ def command(obj: RunContext, data: Path, variants: tuple[str, ...], out: Path | 
     """Print mIoU / mPA / mP per scene and their mean, one row per variant.
 
     Reads the evaluate artifacts the pipeline wrote for every scene under
-    --data; runs nothing (use `make -j3 all DATA=...` or `ptovs evaluate`).
+    --data (or for --data itself when it is one scene); runs nothing (use
+    `make -j3 all DATA=...` or `ptovs evaluate`).
     """
     from ptovs.artifacts import write_atomic
     from ptovs.metrics import markdown_table
@@ -94,10 +123,11 @@ def command(obj: RunContext, data: Path, variants: tuple[str, ...], out: Path | 
         check_outputs({"--out": out, f"the record beside --out "
                        f"({out.with_suffix('.json').name})": out.with_suffix(".json")},
                       suffix=".md")  # fmt: skip
-    if not scene_folders(data):
+    folders = table_scenes(data)
+    if not folders:
         raise click.ClickException(f"no scene folders under {data}")
     rows, failures = collect(obj, data, variants)
-    scenes = [f.name for f in scene_folders(data)]
+    scenes = [f.name for f in folders]
     table = markdown_table(rows, scenes)
     if failures:
         table += (
