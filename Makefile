@@ -59,7 +59,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # column, a tiled roof; what it selects is in docs/results.md, "The demo")
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo view test system-deps test-slurm lint format bench bench-accuracy bench-standin bench-multiapp bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
+.PHONY: setup demo pictures view test system-deps test-slurm lint format bench bench-accuracy bench-standin bench-multiapp bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
 
 # where torch and torchvision come from: PyTorch's CPU index by default (PyPI's Linux
 # torch is the CUDA build, several GB); with an NVIDIA GPU give its CUDA index, e.g.
@@ -86,6 +86,11 @@ demo: setup
 	$(PTOVS) status --data $(QDATA)/tiny_s0
 	@echo "masks, heatmaps, overlays: "$(QWORK)"/tiny_s0/query-out/male/; metrics: "$(QWORK)"/tiny_s0/evaluate.md"
 	@echo "selection: "$(QWORK)"/tiny_s0/select.ply; styles: "$(QWORK)"/tiny_s0/style-out/male/; video: "$(QWORK)"/tiny_s0/tour.mp4"
+
+# after `make demo`: the README's pictures and the figures their captions quote
+# (docs/img, docs/results/demo.json), redrawn from the demo's outputs
+pictures: setup
+	$(BIN)/python bench/pictures.py --data $(QDATA)/tiny_s0 --work $(QWORK) --figures docs/results/demo.json
 
 # after `make demo`: the demo scene in the browser (open the URL it prints, with its token; Ctrl-C stops)
 view: setup

@@ -187,6 +187,13 @@ def view_picture(work: Path, data: Path, config: Path, text: str, docs: Path) ->
     return rec
 
 
+def _commit() -> str:
+    """The checkout's commit (what the pictures and figures describe)."""
+    res = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
+                         capture_output=True, text=True, check=False)  # fmt: skip
+    return res.stdout.strip() or "unknown"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -199,7 +206,8 @@ def main() -> None:
     ap.add_argument("--text", default="Doric Column", help="the demo's DEMO_TEXT")
     ap.add_argument("--docs", type=Path, default=ROOT / "docs" / "img")
     ap.add_argument("--figures", type=Path, default=None,
-                    help="default: <work>/<scene>/figures.json")  # fmt: skip
+                    help="default: <work>/<scene>/figures.json "
+                         "(docs/results/demo.json is what the docs quote)")  # fmt: skip
     ap.add_argument("--no-browser", action="store_true",
                     help="leave view_demo.png (no chromium screenshot)")  # fmt: skip
     args = ap.parse_args()
@@ -212,6 +220,8 @@ def main() -> None:
     recorded = json.loads((demo / "select.json").read_text())
     figures: dict = {
         "scene": scene,
+        "measured": time.strftime("%Y-%m-%d"),
+        "commit": _commit(),
         "evaluate": {k: round(ev[k], 4) for k in ("miou", "mpa", "mp")}
         | {"pairs": ev["pairs"]},
     }

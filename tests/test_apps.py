@@ -160,7 +160,7 @@ def test_select_ply_holds_exactly_the_selected_gaussians(
     # Measured on this CI field (300 reconstruct iterations): 0.40 of 538
     # selected against 0.32 of all 715. The tiny scene's select figures are
     # weak since the generator's answerability screen redrew its column and
-    # roof textures (issue 20); the bench figures are in docs/benchmarks.md.
+    # roof textures; the instrument's figures are in docs/results.md.
     from ptovs.synthetic.generate import nearest_parts
 
     truth = json.loads((tiny_scene_dir / "synthetic/truth/parts.json").read_text())
@@ -186,7 +186,7 @@ def test_select_ply_holds_exactly_the_selected_gaussians(
 
 
 def test_nearest_parts_reads_the_world_truth(tiny_scene_dir):
-    """The truth `select` is scored against (docs/benchmarks.md): dense samples
+    """The truth `select` is scored against (docs/results.md, applications): dense samples
     of every surface the cameras see; each tracked point (points3D, another
     sample of the same surfaces) maps to its own part, a far point to -2."""
     from ptovs.synthetic.generate import nearest_parts
@@ -257,7 +257,7 @@ def test_style_votes_table_json_and_pictures(app_work, tiny_scene_dir, tmp_path)
     # two on average (tiny_s0 since the answerability screen redrew two textures:
     # the 300-iteration test field votes Georgian on every view with Art Deco,
     # the truth, second at 0.43 against 0.45, where the photos' own 2-D crops
-    # vote Art Deco on 10 of 13; docs/benchmarks.md "Applications")
+    # vote Art Deco on 10 of 13)
     mean = {
         s: np.mean([v["values"][s] for v in rec["views"]]) for s in rec["candidates"]
     }

@@ -101,8 +101,8 @@ def test_every_shipped_config_is_valid():
 
 def test_openmp_threads_sleep_and_threads_option():
     """Idle OpenMP threads spin briefly, then sleep, unless the user chose a policy
-    (issue 23: long spins slowed reconstruct on a shared machine; issue 24: sleeping
-    at once slowed it alone); --threads sets torch's count."""
+    (long spins slowed reconstruct on a shared machine; sleeping at once slowed it
+    alone); --threads sets torch's count."""
     code = (
         "import os, sys; import ptovs.cli as c, torch; "
         "print(os.environ.get('GOMP_SPINCOUNT'), os.environ.get('OMP_WAIT_POLICY'));"

@@ -5,8 +5,8 @@ and CHANGELOG.md say what was learned and what changed. So:
 
 - every figure the README puts in bold occurs, as written, in docs/results.md;
 - every link into docs/results.md names a heading that exists there;
-- the demo's figures in docs/results.md are the ones `bench/demo_picture.py` wrote
-  to docs/results/demo.json from a finished `make demo`;
+- the demo's figures in docs/results.md are the ones `make pictures`
+  (bench/pictures.py) wrote to docs/results/demo.json from a finished `make demo`;
 - user docs carry no tracker numbers (an issue, amendment or stop is history for
   the project's notes, not for users), and the front pages stay short.
 
@@ -78,9 +78,12 @@ def test_the_demo_figures_are_the_recorded_ones():
     text = RESULTS.read_text()
     section = text.split("## The demo", 1)[1].split("\n## ", 1)[0]
     for key in ("miou", "mpa", "mp"):
-        assert f"{demo[key]:.3f}" in section, (key, demo[key])
+        assert f"{demo['evaluate'][key]:.3f}" in section, (key, demo["evaluate"])
     sel = demo["select"]
-    assert f"{sel['selected']:,}" in section and f"{sel['total']:,}" in section, sel
+    assert f"{sel['selected']:,} of {sel['gaussians']:,}" in section, sel
+    assert f"score {sel['score']:.3f}" in section, sel
+    assert demo["style"]["winner"] in section, demo["style"]
+    assert demo["commit"] in section, "the demo table names the commit it was measured at"
 
 
 USER_DOCS = ["README.md", "CHANGELOG.md", *sorted(p.relative_to(ROOT).as_posix()

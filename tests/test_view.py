@@ -1,4 +1,4 @@
-"""`ptovs view` (issue 25): the session without a page, the viser page driven from
+"""`ptovs view`: the session without a page, the viser page driven from
 Python, and the page in a real browser (Debian's chromium through Playwright)."""
 
 from __future__ import annotations
@@ -577,7 +577,7 @@ def test_page_in_a_real_browser(session, tmp_path):
 
     port = _free_port()
     page = Page(session, "127.0.0.1", port, heat_width=96)
-    # PTOVS_VIEW_SCREENSHOT=docs/img/view.png keeps the picture (the README's)
+    # PTOVS_VIEW_SCREENSHOT=PATH keeps the picture
     shot = Path(os.environ.get("PTOVS_VIEW_SCREENSHOT") or tmp_path / "view.png")
     try:
         with sync_playwright() as pw:

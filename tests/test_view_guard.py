@@ -1,4 +1,4 @@
-"""The viewer's front door (issue 39), played by an attacker: raw HTTP requests that
+"""The viewer's front door, played by an attacker: raw HTTP requests that
 climb out of the web root, websockets without the token or from another origin,
 and the path cleaning and message checks on their own. The hostile websocket
 client against a whole page is in test_view.py."""

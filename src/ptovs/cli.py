@@ -25,10 +25,10 @@ log = logging.getLogger("ptovs")
 def _openmp_defaults() -> None:
     """OpenMP threads spin ~30 µs when a parallel region ends, then sleep
     (GOMP_SPINCOUNT=3000; libgomp's default spins ~3 ms). Spinning that long took
-    the cores a shared machine's other work needed (issue 23); sleeping at once
-    (OMP_WAIT_POLICY=PASSIVE, issue 23's choice) made each of a training step's
+    the cores a shared machine's other work needed; sleeping at once
+    (OMP_WAIT_POLICY=PASSIVE) made each of a training step's
     thousands of small tensor operations wait for a wake-up: 216-228 ms a bench
-    step alone against 158 ms here (issue 24; docs/benchmarks.md, busy machines).
+    step alone against 158 ms here (docs/findings.md, reconstruct's speed).
     Runs before torch loads its OpenMP runtime; a user's own setting wins."""
     if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
         os.environ["GOMP_SPINCOUNT"] = "3000"
@@ -195,7 +195,7 @@ def _setup_logging(verbose: int, quiet: int) -> None:
     "$PTOVS_THREADS). Results are reproducible bit for bit per thread count. Idle "
     "threads spin briefly, then sleep (GOMP_SPINCOUNT=3000 unless it or "
     "OMP_WAIT_POLICY is set), so the default degrades gracefully beside other "
-    "work (docs/benchmarks.md, busy machines).",
+    "work (docs/findings.md).",
 )
 @click.option("-v", "--verbose", count=True, help="More log output (-vv for debug).")
 @click.option("-q", "--quiet", count=True, help="Less log output.")
