@@ -97,7 +97,7 @@ view: setup
 	$(PTOVS) view --data $(QDATA)/tiny_s0
 
 test: setup system-deps
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q --durations=25
 
 # the README's commands run as written on the synthetic scenes they name (about an
 # hour; tests/test_readme.py checks every line parses, in seconds)

@@ -83,7 +83,9 @@ def test_the_demo_figures_are_the_recorded_ones():
     assert f"{sel['selected']:,} of {sel['gaussians']:,}" in section, sel
     assert f"score {sel['score']:.3f}" in section, sel
     assert demo["style"]["winner"] in section, demo["style"]
-    assert demo["commit"] in section, "the demo table names the commit it was measured at"
+    assert demo["commit"] in section, (
+        "the demo table names the commit it was measured at"
+    )
 
 
 USER_DOCS = ["README.md", "CHANGELOG.md", *sorted(p.relative_to(ROOT).as_posix()
