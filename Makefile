@@ -96,8 +96,12 @@ pictures: setup
 view: setup
 	$(PTOVS) view --data $(QDATA)/tiny_s0
 
+# TEST_JOBS pytest workers (pytest-xdist): the suite waits on processes, browsers and
+# a Slurm for much of its time, so two workers on two cores finish it sooner; the
+# Slurm tests share one worker (tests/conftest.py)
+TEST_JOBS ?= 2
 test: setup system-deps
-	$(BIN)/python -m pytest -q --durations=25
+	$(BIN)/python -m pytest -q -n $(TEST_JOBS) --dist loadgroup --durations=25
 
 # the README's commands run as written on the synthetic scenes they name (about an
 # hour; tests/test_readme.py checks every line parses, in seconds)
