@@ -27,6 +27,7 @@ import json
 import re
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -41,6 +42,19 @@ from common import ROOT  # noqa: E402  (same folder)
 from demo_picture import compose  # noqa: E402
 
 VIEWPORT = {"width": 1000, "height": 700}
+
+
+# the panel's phrase box (viser's mantine layout: the input beside the "Phrase" label)
+PHRASE_INPUT = (
+    "xpath=//label[text()='Phrase']/ancestor::div"
+    "[contains(@class, 'mantine-Flex-root')][1]//input"
+)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def _write(path: Path, rgb: np.ndarray) -> None:
@@ -130,9 +144,8 @@ def style_picture(work: Path, scene: str, data: Path, docs: Path) -> dict:
 
 def view_picture(work: Path, data: Path, config: Path, text: str, docs: Path) -> dict:
     """docs/view_demo.png: `ptovs view` in chromium with `text` highlighted (the
-    command in a fresh process, its printed URL, as bench/view.py drives it)."""
+    command in a fresh process, opened at the URL it prints)."""
     from playwright.sync_api import sync_playwright
-    from view import PHRASE_INPUT, free_port  # bench/view.py
 
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
