@@ -87,10 +87,15 @@ MIN_REGISTERED = 3
 # ------------------------------------------------------------------ detection
 
 
+def is_posed(path: Path) -> bool:
+    """Whether `path` holds a posed scene (PhotoTourism's `dense/`, or `sparse/`)."""
+    return (path / "dense").is_dir() or (path / "sparse").is_dir()
+
+
 def photo_dir(path: Path) -> Path | None:
     """The photo folder if `path` is an unposed collection, else None."""
     path = Path(path)
-    if (path / "dense").is_dir() or (path / "sparse").is_dir():
+    if is_posed(path):
         return None
     for cand in (path / "images", path):
         if cand.is_dir() and any(

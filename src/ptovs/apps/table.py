@@ -30,16 +30,13 @@ def is_scene(folder: Path) -> bool:
     """Whether `folder` is itself a scene rather than a folder of scenes: a posed
     scene (`dense/` or `sparse/` in it), or photos (in it or in `images/`) beside
     no posed scene."""
-    from ptovs.sfm import photo_dir
+    from ptovs.sfm import is_posed, photo_dir
 
-    def posed(p: Path) -> bool:
-        return (p / "dense").is_dir() or (p / "sparse").is_dir()
-
-    if posed(folder):
+    if is_posed(folder):
         return True
     if photo_dir(folder) is None:
         return False
-    return not any(posed(p) for p in folder.iterdir() if p.is_dir())
+    return not any(is_posed(p) for p in folder.iterdir() if p.is_dir())
 
 
 def table_scenes(data: Path) -> list[Path]:
@@ -53,9 +50,10 @@ def table_scenes(data: Path) -> list[Path]:
 
 
 def collect(
-    obj: RunContext, data: Path, variants: tuple[str, ...]
+    obj: RunContext, folders: list[Path], variants: tuple[str, ...]
 ) -> tuple[dict, dict]:
-    """({variant: {scene: summary or None}}, {scene: failure text})."""
+    """({variant: {scene: summary or None}}, {scene: failure text}) over the scene
+    folders `table_scenes` found."""
     from ptovs.chain import Chain
     from ptovs.errors import InputError, MissingInputError
     from ptovs.locate import resolve_scene
@@ -64,7 +62,7 @@ def collect(
 
     rows: dict[str, dict] = {v: {} for v in variants}
     failures: dict[str, str] = {}
-    for folder in table_scenes(data):
+    for folder in folders:
         name = folder.name
         marker = obj.work_dir / name / FAILED_MARKER
         if marker.is_file():
@@ -126,7 +124,7 @@ def command(obj: RunContext, data: Path, variants: tuple[str, ...], out: Path | 
     folders = table_scenes(data)
     if not folders:
         raise click.ClickException(f"no scene folders under {data}")
-    rows, failures = collect(obj, data, variants)
+    rows, failures = collect(obj, folders, variants)
     scenes = [f.name for f in folders]
     table = markdown_table(rows, scenes)
     if failures:
