@@ -419,9 +419,10 @@ def test_query_embeds_texts_with_the_features_encoder():
     from ptovs.field.query import QueryConfig, resolve_text_encoder
 
     real, synth = SimpleNamespace(synthetic=False), SimpleNamespace(synthetic=True)
-    rec = {"name": "openclip", "model": "ViT-L-14", "checkpoint": "ckpt/l14.pt"}
+    rec = {"name": "openclip", "model": "ViT-L-14", "checkpoint": "ckpt/l14.pt",
+           "pretrained": "datacomp_xl_s13b_b90k"}  # fmt: skip
     got = resolve_text_encoder(QueryConfig(), real, rec)
-    assert got == {"name": "openclip", "model": "ViT-L-14", "checkpoint": "ckpt/l14.pt"}
+    assert got == {**rec, "tokenizer": ""}  # the tag travels with the features
     assert resolve_text_encoder(QueryConfig(clip_model="ViT-L-14"), real, rec) == got
     for bad, msg in ((QueryConfig(clip_model="ViT-B-16"), "clip_model"),
                      (QueryConfig(clip_checkpoint="other.pt"), "clip_checkpoint"),
@@ -431,7 +432,8 @@ def test_query_embeds_texts_with_the_features_encoder():
     # no record (features made before it existed): the old rule
     assert resolve_text_encoder(QueryConfig(), synth, None)["name"] == "synthetic"
     old = resolve_text_encoder(QueryConfig(), real, None)
-    assert old == {"name": "openclip", "model": "ViT-B-16", "checkpoint": ""}
+    assert old == {"name": "openclip", "model": "ViT-B-16", "checkpoint": "",
+                   "pretrained": "", "tokenizer": ""}  # fmt: skip
     # the stand-in's versions are one family
     v2 = resolve_text_encoder(QueryConfig(), synth, {"name": "synthetic-v2"})
     assert v2["name"] == "synthetic"

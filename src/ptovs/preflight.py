@@ -20,17 +20,25 @@ log = logging.getLogger(__name__)
 
 
 @functools.lru_cache(maxsize=8)
-def _openclip_fits(model: str, path: str, size: int, mtime_ns: int) -> None:
-    """Load the checkpoint the way the encoder will and compare it with the model's
-    tensors, names and shapes (cached by the file's size and time)."""
+def _openclip_fits(
+    model: str, path: str, size: int, mtime_ns: int, pretrained: str, tokenizer: str
+) -> None:
+    """Load the checkpoint the way the encoder will, compare it with the model's
+    tensors, names and shapes, then run one crop and one phrase through the
+    encoder built from it (cached by the file's size and time)."""
     from ptovs.compat import import_backend
-    from ptovs.encoders.openclip import _state_dict
+    from ptovs.encoders.openclip import _state_dict, preprocess_for
 
     oc = import_backend("open_clip")
     if model not in oc.list_models():
         raise InputError(
-            f"clip_model {model!r} is not an OpenCLIP model (e.g. ViT-B-16, ViT-L-14)"
+            f"clip_model {model!r} is not an OpenCLIP model (e.g. ViT-B-32, "
+            "MobileCLIP2-S0, ViT-B-16; see docs/encoders.md)"
         )
+    try:
+        preprocess_for(model, pretrained)
+    except ValueError as exc:
+        raise InputError(f"{exc}: --set extract-features.clip_pretrained=TAG") from None
     try:
         state = _state_dict(Path(path))
     except Exception as exc:  # a torch/pickle error: one line, naming the file
@@ -38,7 +46,9 @@ def _openclip_fits(model: str, path: str, size: int, mtime_ns: int) -> None:
             f"clip_checkpoint {path} could not be read as a state dict "
             f"({type(exc).__name__}: {str(exc).splitlines()[0][:160]})"
         ) from None
-    want = oc.create_model(model, pretrained=None).state_dict()
+    from ptovs.encoders.openclip import build_net
+
+    want = build_net(model, None).state_dict()
     missing = [k for k in want if k not in state]
     wrong = [
         k for k in want if k in state and tuple(state[k].shape) != tuple(want[k].shape)
@@ -50,14 +60,51 @@ def _openclip_fits(model: str, path: str, size: int, mtime_ns: int) -> None:
             f"tensors missing, {len(wrong)} of another shape (e.g. {what}); give "
             f"{model}'s checkpoint, or set clip_model to the checkpoint's model"
         )
+    del want, state
+    _try_encoder(model, path, pretrained, tokenizer)
 
 
-def check_openclip(model: str, checkpoint: str | Path) -> None:
-    """The OpenCLIP checkpoint exists, loads and fits `model`."""
+def _try_encoder(model: str, path: str, pretrained: str, tokenizer: str) -> None:
+    """One crop and one phrase through the encoder extract-features will build:
+    a model the wrapper cannot drive fails here, in one line."""
+    import numpy as np
+
+    from ptovs.encoders.openclip import OpenClipEncoder
+
+    try:
+        enc = OpenClipEncoder(
+            model, path, pretrained=pretrained, tokenizer=tokenizer, batch_size=1
+        )
+        crop = np.full((1, enc.size, enc.size, 3), 0.5, np.float32)
+        img = enc.encode_images(crop)
+        txt = enc.encode_texts(["a photo of a building"])
+    except Exception as exc:  # noqa: BLE001 - whatever it is, it would fail hours in
+        first = (str(exc).splitlines() or [""])[0][:200]
+        raise InputError(
+            f"clip_model {model} with clip_checkpoint {path} could not encode a "
+            f"test crop and phrase ({type(exc).__name__}: {first})"
+        ) from None
+    if img.shape != (1, enc.dim) or txt.shape != (1, enc.dim):
+        raise InputError(
+            f"clip_model {model}: a test crop and phrase gave features "
+            f"{img.shape} and {txt.shape}, not [1, {enc.dim}]"
+        )
+    if not (np.isfinite(img).all() and np.isfinite(txt).all()):
+        raise InputError(
+            f"clip_checkpoint {path}: {model} gives non-finite features for a "
+            "test crop or phrase (a damaged checkpoint?)"
+        )
+
+
+def check_openclip(
+    model: str, checkpoint: str | Path, pretrained: str = "", tokenizer: str = ""
+) -> None:
+    """The OpenCLIP checkpoint exists, loads, fits `model` and encodes a crop
+    and a phrase."""
     if not str(checkpoint):
         raise InputError(
             "encoder = 'openclip' needs clip_checkpoint = a local OpenCLIP state dict "
-            "(the paper: ViT-B-16 laion2b_s34b_b88k); nothing is downloaded: "
+            "(docs/encoders.md: which model to take); nothing is downloaded: "
             "--set extract-features.clip_checkpoint=FILE"
         )
     path = Path(checkpoint).expanduser()
@@ -67,7 +114,9 @@ def check_openclip(model: str, checkpoint: str | Path) -> None:
             "dict with --set extract-features.clip_checkpoint=FILE"
         )
     st = path.stat()
-    _openclip_fits(model, str(path), st.st_size, st.st_mtime_ns)
+    _openclip_fits(
+        model, str(path), st.st_size, st.st_mtime_ns, pretrained, str(tokenizer)
+    )
 
 
 def _encoder(config: Any, synthetic: bool) -> str:
@@ -88,7 +137,12 @@ def check_extract_config(config: Any, synthetic: bool = False) -> None:
             )
         return
     if _encoder(config, synthetic) == "openclip":
-        check_openclip(config.clip_model, config.clip_checkpoint)
+        check_openclip(
+            config.clip_model,
+            config.clip_checkpoint,
+            getattr(config, "clip_pretrained", ""),
+            getattr(config, "clip_tokenizer", ""),
+        )
     if config.segmenter == "sam":
         ckpt = Path(str(config.sam_checkpoint)).expanduser()
         if not str(config.sam_checkpoint) or not ckpt.is_file():

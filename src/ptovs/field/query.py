@@ -167,6 +167,8 @@ def resolve_text_encoder(
         )
     out = {"name": name, "model": "", "checkpoint": ""}
     if name == "openclip":
+        out["pretrained"] = rec.get("pretrained") or ""
+        out["tokenizer"] = rec.get("tokenizer") or ""
         for key, given in (("model", config.clip_model),
                            ("checkpoint", config.clip_checkpoint)):  # fmt: skip
             was = rec.get(key) or ""
@@ -194,6 +196,8 @@ def text_encoder(
         model=spec["model"],
         checkpoint=spec["checkpoint"],
         device=config.device,
+        pretrained=spec.get("pretrained", ""),
+        tokenizer=spec.get("tokenizer", ""),
     )
 
 

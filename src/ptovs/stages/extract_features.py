@@ -20,6 +20,7 @@ or "openclip" (local checkpoint, extra [clip]; the default elsewhere). Or
 
 from __future__ import annotations
 
+import hashlib
 import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -71,10 +72,24 @@ class Config:
     encoder: Literal["auto", "synthetic", "openclip"] = "auto"
     """"auto": the stand-in on synthetic scenes, OpenCLIP elsewhere."""
     clip_model: str = "ViT-B-16"
+    """Any open_clip model name (docs/encoders.md: which to take on a CPU)."""
     clip_checkpoint: str = ""
+    """The local state dict of clip_model (nothing is downloaded)."""
+    clip_pretrained: str = ""
+    """The checkpoint's open_clip tag (e.g. "dfndr2b"): it decides the
+    preprocessing; needed only where a model's tags preprocess differently."""
+    clip_tokenizer: str = ""
+    """Local Hugging Face tokenizer folder (SigLIP models only)."""
+    precision: Literal["auto", "fp32", "bf16"] = "auto"
+    """OpenCLIP's image tower: "auto" encodes a sample of the scene's crops in
+    fp32 and bf16 and keeps bf16 only if they agree (worst centred cosine ≥
+    0.995, top-1 phrase agreement ≥ 0.98), else fp32; the choice and its figures
+    go into the artifact. "fp32" / "bf16" force one."""
     device: str = "cpu"
     batch_size: int = 64
-    crop_size: int = 224
+    crop_size: int = 0
+    """Crop side in pixels; 0: the encoder's own input size (224 for the
+    stand-in and ViT-B, 256 for MobileCLIP)."""
     images: Literal["all", "orig"] = "all"
     """"all": the original and every render; "orig": originals only (then the
     stage does not depend on reconstruct: LangSplat's recipe on any geometry)."""
@@ -152,6 +167,8 @@ def encoder_spec(config: Config, encoder: Encoder) -> dict:
             "name": "openclip",
             "model": config.clip_model,
             "checkpoint": str(config.clip_checkpoint),
+            "pretrained": config.clip_pretrained,
+            "tokenizer": str(config.clip_tokenizer),
         }
     return {"name": encoder.name}
 
@@ -171,7 +188,15 @@ def build_encoder(
         checkpoint=config.clip_checkpoint,
         device=config.device,
         batch_size=config.batch_size,
+        pretrained=config.clip_pretrained,
+        tokenizer=config.clip_tokenizer,
+        precision=config.precision,
     )
+
+
+def crop_side(config: Config, encoder: Encoder) -> int:
+    """The crop side: config.crop_size, or the encoder's own input size."""
+    return int(config.crop_size or getattr(encoder, "size", 224))
 
 
 def image_features(
@@ -194,18 +219,87 @@ def encode_levels(
     batch_size: int = 64,
     crop_size: int = 224,
 ) -> SegmentFeatures:
-    """Encode each segment's crop of an image already segmented (`Level`s)."""
-    feats = []
-    for level in levels:
-        rows = np.zeros((level.n, encoder.dim), np.float32)
-        for start in range(0, level.n, batch_size):  # bounded memory per batch
-            ids = range(start, min(start + batch_size, level.n))
-            crops = np.stack(
-                [prepare_crop(image, level.mask(i), crop_size) for i in ids]
-            )
-            rows[start : start + len(crops)] = encoder.encode_images(crops)
-        feats.append(rows)
+    """Encode each segment's crop of an image already segmented (`Level`s).
+
+    A segment that recurs with the same mask (a region no finer level splits)
+    gives the same crop, so it is encoded once and its row copied."""
+    order, where = unique_segments(levels)
+    feats = [np.zeros((lv.n, encoder.dim), np.float32) for lv in levels]
+    for start in range(0, len(order), batch_size):  # bounded memory per batch
+        batch = order[start : start + batch_size]
+        crops = np.stack(
+            [prepare_crop(image, levels[lv].mask(k), crop_size) for lv, k in batch]
+        )
+        rows = encoder.encode_images(crops)
+        for j, (lv, k) in enumerate(batch):
+            for lv2, k2 in where[(lv, k)]:
+                feats[lv2][k2] = rows[j]
     return SegmentFeatures.from_levels(levels, feats, encoder.dim)
+
+
+def unique_segments(
+    levels: list,
+) -> tuple[list[tuple[int, int]], dict[tuple[int, int], list[tuple[int, int]]]]:
+    """The (level, id) of each distinct segment mask, first occurrence first,
+    and for each of them every (level, id) with the same mask."""
+    first: dict[bytes, tuple[int, int]] = {}
+    where: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    order: list[tuple[int, int]] = []
+    for lv, level in enumerate(levels):
+        for k in range(level.n):
+            m = np.asarray(level.mask(k), bool)
+            rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+            box = (rows[:1], rows[-1:], cols[:1], cols[-1:]) if rows.size else ()
+            inner = (
+                m[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1] if rows.size else m
+            )
+            key = hashlib.blake2b(
+                np.concatenate([np.asarray(box, np.int64).ravel(),
+                                np.asarray(inner.shape, np.int64)]).tobytes()
+                + np.packbits(inner).tobytes(), digest_size=16,
+            ).digest()  # fmt: skip
+            if key not in first:
+                first[key] = (lv, k)
+                order.append((lv, k))
+                where[(lv, k)] = []
+            where[first[key]].append((lv, k))
+    return order, where
+
+
+def precision_sample(
+    image: np.ndarray, levels: list, crop_size: int, n: int = 48
+) -> np.ndarray:
+    """Up to n crops of one image's distinct segments, evenly spread over them
+    (the sample `precision = "auto"` checks the reduced-precision tower on)."""
+    order, _ = unique_segments(levels)
+    if not order:
+        return np.zeros((0, crop_size, crop_size, 3), np.float32)
+    pick = np.unique(np.linspace(0, len(order) - 1, min(n, len(order))).astype(int))
+    return np.stack(
+        [prepare_crop(image, levels[order[i][0]].mask(order[i][1]), crop_size)
+         for i in pick]
+    )  # fmt: skip
+
+
+def check_precision(encoder: Encoder, segmenter: Segmenter, image, crop_size: int):
+    """Run the encoder's precision check on a sample of `image`'s crops, when it
+    asks for one (OpenCLIP with precision "auto"); None otherwise."""
+    if getattr(encoder, "precision_wanted", None) != "auto":
+        return None
+    sample = precision_sample(image, segmenter.segment(image), crop_size)
+    if not len(sample):
+        log.info("precision: no segments to check on; keeping fp32")
+        return {"precision": "fp32", "checked": "bf16", "crops": 0}
+    report = encoder.check_precision(sample)
+    log.info(
+        "precision: %s (bf16 vs fp32 on %d crops: worst centred cosine %.4f, "
+        "top-1 agreement %.3f; bar %.3f / %.2f)%s",
+        report["precision"], report["crops"], report["worst_centred_cosine"],
+        report["top1_agreement"], report["bar"]["worst_centred_cosine"],
+        report["bar"]["top1_agreement"],
+        "" if report["precision"] == "bf16" else ": bf16 disagrees, fp32 kept",
+    )  # fmt: skip
+    return report
 
 
 def run(
@@ -229,6 +323,14 @@ def run(
     else:
         segmenter = build_segmenter(config, scene.root)
         encoder = build_encoder(config, scene.synthetic, scene.root)
+        side = crop_side(config, encoder)
+        precision = None
+        if getattr(encoder, "precision_wanted", None) == "auto":
+            v0 = scene.train_views()[0]  # the same sample whatever was skipped
+            if hasattr(segmenter, "select"):
+                segmenter.select(v0.stem, True)
+            img0 = (scene.load_image(v0) * 255.0 + 0.5).astype(np.uint8)
+            precision = check_precision(encoder, segmenter, img0, side)
     for v in scene.train_views():
         if v.name in skip:
             continue
@@ -245,9 +347,7 @@ def run(
                     img = renders[slots.index(app)]
                 if hasattr(segmenter, "select"):  # truth: this view, occluders or not
                     segmenter.select(v.stem, app == "orig")
-                f = image_features(
-                    img, segmenter, encoder, config.batch_size, config.crop_size
-                )
+                f = image_features(img, segmenter, encoder, config.batch_size, side)
             f.validate(f"{v.name} {app}")
             out.update(f.datasets(app))
         yield v.name, out
@@ -263,6 +363,7 @@ def run(
                     "encoder_spec": None
                     if importing
                     else encoder_spec(config, encoder),
+                    "precision": None if importing else precision,
                 }
             )
         },
