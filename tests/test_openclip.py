@@ -130,15 +130,25 @@ def test_preprocessing_follows_the_pretrained_tag():
         preprocess_for("ViT-Q-99")
 
 
-def test_no_random_init_warning_when_a_checkpoint_is_given(tmp_path, caplog):
+def test_a_checkpoint_loads_quietly_from_torch_or_safetensors(tmp_path, caplog):
     from ptovs.encoders.openclip import OpenClipEncoder, build_net, register_tiny
+
+    from safetensors.torch import save_file
 
     name = register_tiny()
     ckpt = tmp_path / "tiny.pt"
-    torch.save(build_net(name, None).state_dict(), ckpt)
+    state = build_net(name, None).state_dict()
+    torch.save(state, ckpt)
     with caplog.at_level("WARNING"):
-        OpenClipEncoder(name, ckpt)
+        enc = OpenClipEncoder(name, ckpt)
     assert "initialized randomly" not in caplog.text
+    # the hubs' .safetensors files load too, to the same weights
+    safe = tmp_path / "open_clip_model.safetensors"
+    save_file({k: v.contiguous() for k, v in state.items()}, safe)
+    crops = _crops(2, 224)
+    np.testing.assert_array_equal(
+        OpenClipEncoder(name, safe).encode_images(crops), enc.encode_images(crops)
+    )
 
 
 def _outliers(enc, size: float = 1000.0) -> None:

@@ -147,6 +147,13 @@ def preprocess_for(model: str, tag: str = "") -> Preprocess:
 
 
 def _state_dict(path: Path) -> dict[str, torch.Tensor]:
+    """A checkpoint's tensors: a `.safetensors` file (as the model hubs ship
+    open_clip weights) or a torch file read with weights_only=True."""
+    path = Path(path)
+    if path.suffix == ".safetensors":
+        from safetensors.torch import load_file
+
+        return {k.removeprefix("module."): v for k, v in load_file(path).items()}
     obj = torch.load(path, map_location="cpu", weights_only=True)
     if isinstance(obj, dict) and "state_dict" in obj:
         obj = obj["state_dict"]
