@@ -72,7 +72,9 @@ $(VENV)/.installed: pyproject.toml
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q torch==2.13.0 $(TORCH_FROM)        # never an unpinned torch
 	$(BIN)/pip install -q torchvision==0.28.0 $(TORCH_FROM)  # matches torch 2.13 (for the extras)
-	$(BIN)/pip install -q -e '.[dev,clip,sam,view,cluster]'  # the extras' tests run in CI
+	$(BIN)/pip install -q 'setuptools>=70.1'  # builds sam2 below (no wheel package needed)
+	SAM2_BUILD_CUDA=0 $(BIN)/pip install -q --no-build-isolation --no-deps sam2==1.1.0  # pyproject's [sam2]
+	$(BIN)/pip install -q -e '.[dev,clip,sam,sam2,view,cluster]'  # the extras' tests run in CI
 	$(BIN)/pip install -q --no-deps viser==1.0.0  # see pyproject's [view] extra
 	touch $@
 

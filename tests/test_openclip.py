@@ -131,9 +131,9 @@ def test_preprocessing_follows_the_pretrained_tag():
 
 
 def test_a_checkpoint_loads_quietly_from_torch_or_safetensors(tmp_path, caplog):
-    from ptovs.encoders.openclip import OpenClipEncoder, build_net, register_tiny
-
     from safetensors.torch import save_file
+
+    from ptovs.encoders.openclip import OpenClipEncoder, build_net, register_tiny
 
     name = register_tiny()
     ckpt = tmp_path / "tiny.pt"

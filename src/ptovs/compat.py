@@ -1,4 +1,4 @@
-"""Import shims for the optional model backends (extras `[clip]`, `[sam]`).
+"""Import shims for the optional model backends (extras `[clip]`, `[sam]`, `[sam2]`).
 
 torchvision 0.28.0 on PyPI is a CUDA build whose compiled ops cannot register
 against the CPU torch wheel; `import torchvision` then fails in
@@ -19,7 +19,19 @@ from typing import Any
 
 _STUB = "torchvision._meta_registrations"
 
-EXTRA_OF = {"open_clip": "clip", "segment_anything": "sam", "torchvision": "clip"}
+EXTRA_OF = {
+    "open_clip": "clip",
+    "segment_anything": "sam",
+    "sam2": "sam2",
+    "torchvision": "clip",
+}
+
+# sam2 is an sdist whose build requires torch: pip would fetch a CUDA torch into an
+# isolated build environment, so it is built against the installed one (pyproject)
+SAM2_INSTALL = (
+    "SAM2_BUILD_CUDA=0 pip install --no-build-isolation --no-deps sam2==1.1.0 && "
+    "pip install -e '.[sam2]'"
+)
 
 
 def _stub_meta_registrations() -> None:
@@ -39,7 +51,8 @@ def import_backend(module: str) -> Any:
     """Import an optional backend module, with a clear error naming the extra.
 
     Args:
-        module: "open_clip", "segment_anything" or "torchvision".
+        module: "open_clip", "segment_anything", "sam2" or "torchvision" (or
+            one of their submodules).
 
     Returns:
         The imported module.
@@ -52,9 +65,13 @@ def import_backend(module: str) -> Any:
         return importlib.import_module(module)
     except ImportError as exc:
         extra = EXTRA_OF.get(module.split(".")[0], "clip")
+        how = (
+            SAM2_INSTALL
+            if extra == "sam2"
+            else f"pip install torchvision==0.28.0 -e '.[{extra}]'"
+        )
         raise ImportError(
-            f"{module} is not installed ({exc}); install the extra with: "
-            f"pip install torchvision==0.28.0 -e '.[{extra}]' "
+            f"{module} is not installed ({exc}); install the extra with: {how} "
             "(pin torchvision to your torch; see README, 'Model backends')"
         ) from exc
 

@@ -19,6 +19,33 @@ from ptovs.errors import InputError, MissingInputError
 log = logging.getLogger(__name__)
 
 
+def _read_state(field: str, path: str, read: Any) -> dict:
+    """`read(path)` (a state dict); a torch/pickle error becomes one line naming
+    the file."""
+    try:
+        return read(Path(path))
+    except Exception as exc:  # a torch/pickle error: one line, naming the file
+        raise InputError(
+            f"{field} {path} could not be read as a state dict "
+            f"({type(exc).__name__}: {str(exc).splitlines()[0][:160]})"
+        ) from None
+
+
+def _state_mismatch(
+    state: dict, want: dict, extra: bool
+) -> tuple[list[str], list[str], list[str]]:
+    """Tensors of `want` (tensors or shapes) missing from `state`, of another
+    shape there, and (when `extra`) tensors of `state` that `want` does not have."""
+
+    def shape(v: Any) -> tuple:
+        return tuple(getattr(v, "shape", v))
+
+    missing = [k for k in want if k not in state]
+    wrong = [k for k in want if k in state and shape(state[k]) != shape(want[k])]
+    unexpected = [k for k in state if k not in want] if extra else []
+    return missing, wrong, unexpected
+
+
 @functools.lru_cache(maxsize=8)
 def _openclip_fits(
     model: str, path: str, size: int, mtime_ns: int, pretrained: str, tokenizer: str
@@ -33,26 +60,17 @@ def _openclip_fits(
     if model not in oc.list_models():
         raise InputError(
             f"clip_model {model!r} is not an OpenCLIP model (e.g. ViT-B-32, "
-            "MobileCLIP2-S0, ViT-B-16; see docs/encoders.md)"
+            "MobileCLIP2-S0, ViT-B-16; see docs/guide.md)"
         )
     try:
         preprocess_for(model, pretrained)
     except ValueError as exc:
         raise InputError(f"{exc}: --set extract-features.clip_pretrained=TAG") from None
-    try:
-        state = _state_dict(Path(path))
-    except Exception as exc:  # a torch/pickle error: one line, naming the file
-        raise InputError(
-            f"clip_checkpoint {path} could not be read as a state dict "
-            f"({type(exc).__name__}: {str(exc).splitlines()[0][:160]})"
-        ) from None
+    state = _read_state("clip_checkpoint", path, _state_dict)
     from ptovs.encoders.openclip import build_net
 
     want = build_net(model, None).state_dict()
-    missing = [k for k in want if k not in state]
-    wrong = [
-        k for k in want if k in state and tuple(state[k].shape) != tuple(want[k].shape)
-    ]
+    missing, wrong, _ = _state_mismatch(state, want, extra=False)
     if missing or wrong:
         what = wrong[:2] or missing[:2]
         raise InputError(
@@ -96,6 +114,38 @@ def _try_encoder(model: str, path: str, pretrained: str, tokenizer: str) -> None
         )
 
 
+@functools.lru_cache(maxsize=4)
+def _sam2_shapes(model: str) -> dict:
+    """{name: shape} of SAM 2.1 `model`'s tensors (built once, randomly)."""
+    from ptovs.segment.sam2 import build_sam2_model
+
+    return {k: v.shape for k, v in build_sam2_model(model).state_dict().items()}
+
+
+@functools.lru_cache(maxsize=8)
+def _sam2_fits(model: str, path: str, size: int, mtime_ns: int) -> None:
+    """Load the checkpoint the way the segmenter will and compare it with the
+    model's tensors: names, shapes, and none left over (a strict load)."""
+    from ptovs.segment.sam2 import sam2_state_dict
+
+    state = _read_state("sam_checkpoint", path, sam2_state_dict)
+    missing, wrong, extra = _state_mismatch(state, _sam2_shapes(model), extra=True)
+    if missing or wrong or extra:
+        what = wrong[:2] or missing[:2] or extra[:2]
+        sam1 = any(k.startswith("prompt_encoder.") for k in state)  # SAM 1's names
+        raise InputError(
+            f"sam_checkpoint {path} is not a SAM 2.1 {model} checkpoint: "
+            f"{len(missing)} tensors missing, {len(wrong)} of another shape, "
+            f"{len(extra)} left over (e.g. {what}); give sam2.1_hiera_{model}.pt, "
+            + (
+                "or set extract-features.segmenter = 'sam' (this is a SAM 1 "
+                "checkpoint) and sam_model"
+                if sam1
+                else "or set extract-features.sam2_model to the checkpoint's model"
+            )
+        )
+
+
 def check_openclip(
     model: str, checkpoint: str | Path, pretrained: str = "", tokenizer: str = ""
 ) -> None:
@@ -104,7 +154,7 @@ def check_openclip(
     if not str(checkpoint):
         raise InputError(
             "encoder = 'openclip' needs clip_checkpoint = a local OpenCLIP state dict "
-            "(docs/encoders.md: which model to take); nothing is downloaded: "
+            "(docs/guide.md: which model to take); nothing is downloaded: "
             "--set extract-features.clip_checkpoint=FILE"
         )
     path = Path(checkpoint).expanduser()
@@ -143,14 +193,33 @@ def check_extract_config(config: Any, synthetic: bool = False) -> None:
             getattr(config, "clip_pretrained", ""),
             getattr(config, "clip_tokenizer", ""),
         )
-    if config.segmenter == "sam":
-        ckpt = Path(str(config.sam_checkpoint)).expanduser()
-        if not str(config.sam_checkpoint) or not ckpt.is_file():
-            raise MissingInputError(
-                f"segmenter = 'sam' needs sam_checkpoint = a local SAM checkpoint "
-                f"({str(ckpt) if str(config.sam_checkpoint) else 'none given'}); "
-                "--set extract-features.sam_checkpoint=FILE"
+    if config.segmenter in ("sam", "sam2"):
+        check_sam_checkpoint(config)
+
+
+def check_sam_checkpoint(config: Any) -> None:
+    """segmenter "sam" or "sam2": the checkpoint exists; for "sam2" it also loads
+    and fits `sam2_model` (a SAM 1 or another size's checkpoint is refused)."""
+    sam2 = config.segmenter == "sam2"
+    if sam2:
+        from ptovs.segment.sam2 import SAM2_MODELS
+
+        if config.sam2_model not in SAM2_MODELS:
+            raise InputError(
+                f"extract-features.sam2_model {config.sam2_model!r}: choose from "
+                f"{list(SAM2_MODELS)}"
             )
+    what = "a local SAM 2.1 checkpoint" if sam2 else "a local SAM checkpoint"
+    ckpt = Path(str(config.sam_checkpoint)).expanduser()
+    if not str(config.sam_checkpoint) or not ckpt.is_file():
+        raise MissingInputError(
+            f"segmenter = {config.segmenter!r} needs sam_checkpoint = {what} "
+            f"({str(ckpt) if str(config.sam_checkpoint) else 'none given'}); "
+            "--set extract-features.sam_checkpoint=FILE"
+        )
+    if sam2:
+        st = ckpt.stat()
+        _sam2_fits(config.sam2_model, str(ckpt), st.st_size, st.st_mtime_ns)
 
 
 def _extract(config: Any, scene: Any) -> None:
@@ -204,4 +273,9 @@ def _preflight(chain: Any, stages: list[str]) -> None:
     log.debug("preflight: %s checked", ", ".join(todo))
 
 
-__all__ = ["check_extract_config", "check_openclip", "preflight"]
+__all__ = [
+    "check_extract_config",
+    "check_openclip",
+    "check_sam_checkpoint",
+    "preflight",
+]

@@ -1,4 +1,4 @@
-"""OpenCLIP as the image/text encoder (extra `[clip]`; docs/encoders.md).
+"""OpenCLIP as the image/text encoder (extra `[clip]`; docs/guide.md).
 
 Any open_clip model name works, with its weights from a local checkpoint file
 (`clip_checkpoint`, loaded with `weights_only=True`; nothing is downloaded). The

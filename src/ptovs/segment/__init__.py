@@ -9,8 +9,10 @@ for level in seg.segment(image):  # image [H, W, 3] uint8 RGB
 
 Backends: `hier` (nested levels cut from one region-merging hierarchy; the CPU
 default), `graph` (OpenCV's Felzenszwalb graph segmentation at one scale per level)
-and `sam` (segment-anything from a local checkpoint, extra
-`[sam]`, LangSplat's multi-level recipe; see `ptovs.segment.sam`).
+`sam` (segment-anything from a local checkpoint, extra
+`[sam]`, LangSplat's multi-level recipe; see `ptovs.segment.sam`) and `sam2` (the
+same recipe on SAM 2.1's cheaper Hiera encoder, extra `[sam2]`;
+`ptovs.segment.sam2`).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from ptovs.segment.levels import (
     check_levels,
 )
 
-SEGMENTERS = ("graph", "hier", "sam")
+SEGMENTERS = ("graph", "hier", "sam", "sam2")
 
 
 def get_segmenter(name: str, **kwargs) -> Segmenter:
@@ -40,6 +42,10 @@ def get_segmenter(name: str, **kwargs) -> Segmenter:
         from ptovs.segment.sam import SamSegmenter
 
         return SamSegmenter(**kwargs)
+    if name == "sam2":
+        from ptovs.segment.sam2 import Sam2Segmenter
+
+        return Sam2Segmenter(**kwargs)
     raise ValueError(f"unknown segmenter {name!r}; choose from {list(SEGMENTERS)}")
 
 

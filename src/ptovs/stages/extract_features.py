@@ -12,7 +12,7 @@ Per train view and appearance slot `app` ∈ {orig, nov1.., self}: `seg_<app>`
 
 Backends: segmenter "hier" (nested levels from one merge hierarchy, the CPU
 default), "graph" (one Felzenszwalb pass per level), "sam" (local checkpoint,
-extra [sam]) or "truth" (a synthetic scene's part masks: the instrument's); encoder "synthetic" (the stand-in; the default on synthetic scenes)
+extra [sam]), "sam2" (SAM 2.1, local checkpoint, extra [sam2]) or "truth" (a synthetic scene's part masks: the instrument's); encoder "synthetic" (the stand-in; the default on synthetic scenes)
 or "openclip" (local checkpoint, extra [clip]; the default elsewhere). Or
 `import_dir`: a LangSplat feature folder (`<id>_f.npy`, `<id>_s.npy`, renders
 `<id>_f_ma_<k>.npy`) used instead of segmenting and encoding.
@@ -47,10 +47,11 @@ VERSION = 1
 class Config:
     levels: tuple[Literal["default", "s", "m", "l"], ...] = ("s", "m", "l")
     """Levels, from "default", "s", "m", "l" (LangSplat's four; the paper uses s/m/l)."""
-    segmenter: Literal["graph", "hier", "sam", "truth"] = "hier"
+    segmenter: Literal["graph", "hier", "sam", "sam2", "truth"] = "hier"
     """"graph": one Felzenszwalb pass per level; "hier": nested levels cut from
     one merge hierarchy over texture features (`ptovs.segment.hier`); "sam": a
-    local SAM checkpoint; "truth": a synthetic scene's part masks (the accuracy
+    local SAM checkpoint; "sam2": a local SAM 2.1 checkpoint (cheaper on a CPU);
+    "truth": a synthetic scene's part masks (the accuracy
     instrument's perfect segmenter; refused elsewhere)."""
     graph_k: tuple[float, ...] = ()
     """Felzenszwalb k per level (empty: 100/300/1000/3000 for default/s/m/l)."""
@@ -66,13 +67,17 @@ class Config:
     hier_min_size: int = 300
     """Smallest hier segment at 512×384, scaled with the image area."""
     sam_checkpoint: str = ""
+    """The local checkpoint of segmenter "sam" or "sam2"."""
     sam_model: str = "vit_h"
+    """segmenter "sam": vit_h, vit_l or vit_b."""
+    sam2_model: str = "tiny"
+    """segmenter "sam2": SAM 2.1 tiny, small, base_plus or large."""
     sam_points_per_side: int = 32
     sam_crop_n_layers: int = 1
     encoder: Literal["auto", "synthetic", "openclip"] = "auto"
     """"auto": the stand-in on synthetic scenes, OpenCLIP elsewhere."""
     clip_model: str = "ViT-B-16"
-    """Any open_clip model name (docs/encoders.md: which to take on a CPU)."""
+    """Any open_clip model name (docs/guide.md, "Real encoders and segmenters")."""
     clip_checkpoint: str = ""
     """The local state dict of clip_model (nothing is downloaded)."""
     clip_pretrained: str = ""
@@ -139,10 +144,11 @@ def build_segmenter(config: Config, scene_root: Path | None = None) -> Segmenter
         from ptovs.segment.truth import TruthSegmenter
 
         return TruthSegmenter(scene_root, levels)
+    sam2 = config.segmenter == "sam2"
     return get_segmenter(
-        "sam",
+        config.segmenter,
         checkpoint=config.sam_checkpoint,
-        model_type=config.sam_model,
+        model_type=config.sam2_model if sam2 else config.sam_model,
         levels=levels,
         points_per_side=config.sam_points_per_side,
         crop_n_layers=config.sam_crop_n_layers,

@@ -1,0 +1,126 @@
+"""SAM 2.1 as a multi-level segmenter: the same recipe as `ptovs.segment.sam`
+(outputs 0/1/2 of the multimask decoder are levels s/m/l, SAM's filters,
+LangSplat's mask NMS) with SAM 2.1's hierarchical (Hiera) image encoder, which is
+cheaper than SAM's ViT on a CPU (bench/segmenters.py).
+
+The `sam2` package (extra `[sam2]`; pyproject says how to install it without a
+CUDA torch) supplies the model, `SAM2ImagePredictor` and `utils.amg`; the
+generator loop is `ptovs.segment.generator.MaskGenerator`, driven through
+`Sam2Points`, which calls the predictor's point path exactly as sam2's own
+automatic mask generator does (its `_transforms` and `_predict`).
+
+The model is built from sam2's own config (`SAM2_MODELS`: tiny, small, base_plus,
+large) on `device` and loaded from a local checkpoint (`sam_checkpoint`; sam2's
+checkpoints hold {"model": state_dict}) with `torch.load(weights_only=True)`;
+nothing is downloaded.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ptovs.compat import import_backend
+from ptovs.segment.generator import MaskGenerator, local_checkpoint
+
+SAM2_MODELS = {
+    "tiny": "sam2.1_hiera_t.yaml",
+    "small": "sam2.1_hiera_s.yaml",
+    "base_plus": "sam2.1_hiera_b+.yaml",
+    "large": "sam2.1_hiera_l.yaml",
+}
+"""sam2_model → sam2's config (configs/sam2.1/); the checkpoints Meta publishes are
+sam2.1_hiera_tiny.pt, _small.pt, _base_plus.pt and _large.pt."""
+
+
+def build_sam2_model(model_type: str = "tiny", device: str = "cpu") -> Any:
+    """SAM 2.1 `model_type`, randomly initialised, in eval mode on `device`."""
+    if model_type not in SAM2_MODELS:
+        raise ValueError(f"sam2_model {model_type!r}: choose from {list(SAM2_MODELS)}")
+    import_backend("sam2")  # torchvision's stub first, then sam2's hydra configs
+    build = import_backend("sam2.build_sam").build_sam2
+    return build(f"configs/sam2.1/{SAM2_MODELS[model_type]}", None, device=device)
+
+
+def sam2_state_dict(path: str | Path) -> dict:
+    """The state dict of a sam2 checkpoint ({"model": ...}, or a bare state dict)."""
+    obj = torch.load(Path(path), map_location="cpu", weights_only=True)
+    if isinstance(obj, dict) and isinstance(obj.get("model"), dict):
+        return obj["model"]
+    if not isinstance(obj, dict):
+        raise ValueError(f"{path} holds a {type(obj).__name__}, not a state dict")
+    return obj
+
+
+def load_sam2(
+    checkpoint: str | Path, model_type: str = "tiny", device: str = "cpu"
+) -> Any:
+    """Build SAM 2.1 `model_type` and load a local checkpoint (weights_only)."""
+    path = local_checkpoint(checkpoint, "sam2", "sam2.1_hiera_tiny.pt")
+    model = build_sam2_model(model_type, "cpu")
+    model.load_state_dict(sam2_state_dict(path))
+    return model.to(device).eval()
+
+
+class Sam2Points:
+    """sam2's `SAM2ImagePredictor` as the generator's `PointPredictor`."""
+
+    def __init__(self, predictor: Any):
+        self.predictor = predictor
+        self.mask_threshold = predictor.mask_threshold
+
+    def set_image(self, image: np.ndarray) -> None:
+        self.predictor.set_image(image)
+
+    def predict(self, points: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        pred = self.predictor
+        pts = torch.as_tensor(points, dtype=torch.float32, device=pred.device)
+        pts = pred._transforms.transform_coords(
+            pts, normalize=True, orig_hw=pred._orig_hw[0]
+        )
+        labels = torch.ones(len(pts), dtype=torch.int, device=pts.device)
+        logits, iou, _ = pred._predict(
+            pts[:, None, :], labels[:, None], multimask_output=True, return_logits=True
+        )
+        return logits, iou
+
+    def reset(self) -> None:
+        self.predictor.reset_predictor()
+
+
+class Sam2Segmenter(MaskGenerator):
+    """SAM 2.1 from `checkpoint` (or `model=`, a built `SAM2Base`); `options` are
+    `MaskGenerator`'s (levels, points_per_side, crop_n_layers, the filters)."""
+
+    name = "sam2"
+
+    def __init__(
+        self,
+        checkpoint: str | Path = "",
+        model_type: str = "tiny",
+        device: str = "cpu",
+        model: Any = None,
+        **options: Any,
+    ):
+        self.model = (
+            model.to(device).eval()
+            if model is not None
+            else load_sam2(checkpoint, model_type, device)
+        )
+        predictor_cls = import_backend("sam2.sam2_image_predictor").SAM2ImagePredictor
+        self.predictor = predictor_cls(self.model)
+        amg = import_backend("sam2.utils.amg")
+        super().__init__(Sam2Points(self.predictor), amg, **options)
+
+
+__all__ = [
+    "SAM2_MODELS",
+    "Sam2Points",
+    "Sam2Segmenter",
+    "build_sam2_model",
+    "load_sam2",
+    "sam2_state_dict",
+]
