@@ -38,10 +38,11 @@ def main(argv: list[str] | None = None) -> None:
     from ptovs.stages.extract_features import Config, build_segmenter, crop_sides
     from ptovs.synthetic import generate_scene
 
-    root = args.data / f"{args.preset}_s{args.seed}"
+    name = f"{args.preset}_s{args.seed}" + (f"_p{args.photos}" if args.photos else "")
+    root = args.data / name
     if not (root / "synthetic" / "truth" / "cameras.json").is_file():
-        generate_scene(args.data, args.preset, args.seed, progress=False,
-                       photos=args.photos)  # fmt: skip
+        root = generate_scene(args.data, args.preset, args.seed, progress=False,
+                              photos=args.photos)  # fmt: skip
     scene = load_scene(root, downscale="auto")
     seg = build_segmenter(Config(), scene.root)
     rows = []
