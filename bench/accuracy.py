@@ -39,6 +39,11 @@ view, query) pair:
                       truth part masks as segments (the paper's SAM setting's bound)
   same-appearance-truth, select-random-truth   Table 4 on truth segments (one
                       appearance, random targets; compare with --base male-truth)
+  male-segment-once, male-segment-once-orig   the full method segmenting each
+                      view once (its self render, its photo) and cropping every
+                      image of it with those segments (extract-features.segment)
+  male-min-crop-16, male-min-crop-32   the full method without the segments
+                      whose crop is under 16 / 32 px (extract-features.min_crop_px)
 
 A finished seed's pairs go to <work>/results/<scene>.json (atomically), each label
 with the artifact key of what it measured. A rerun drops every label whose key the
@@ -116,12 +121,23 @@ CHAIN_LABELS.update({
     for k, item in (("same-appearance", "targets=same"),
                     ("select-random", "selection=random"))
 })  # fmt: skip
+# extract-features' economies, each against `male`: one segmentation per view
+# (from the self render or the photo) and no crops under 16 or 32 px
+CHAIN_LABELS.update({
+    "male-segment-once": ("male", {"extract-features": ["segment=once"]}),
+    "male-segment-once-orig": ("male", {"extract-features": [
+        "segment=once", "segment_from=orig"]}),
+    **{f"male-min-crop-{px}": ("male", {"extract-features": [f"min_crop_px={px}"]})
+       for px in (16, 32)},
+})  # fmt: skip
 # measured only when asked for (--labels), kept out of the default run so that
 # `make bench-accuracy` stays within its time: Table 3 row 3, the code-space lift,
 # and Table 3 and 4 rows under truth segments (`make bench-multiapp`)
 OPTIONAL_LABELS = (
     "no-uncertainty-ae", "lift-codes", "male-truth", "langsplat-truth",
     "no-multi-appearance-truth", "same-appearance-truth", "select-random-truth",
+    "male-segment-once", "male-segment-once-orig", "male-min-crop-16",
+    "male-min-crop-32",
 )  # fmt: skip
 CHAIN_LABELS.update({v: (v, {}) for v in ("no-uncertainty-ae", "lift-codes")})
 FEATURE_LABELS = ("2d", "2d-ae", "2d-nosmooth", "2d-best", "2d-truth")

@@ -10,6 +10,12 @@ Per train view and appearance slot `app` ∈ {orig, nov1.., self}: `seg_<app>`
 `feat_<app>` [n, D] float16 unit rows, `nseg_<app>` [L] rows per level. Root:
 `levels_json` (level names, backends, slots).
 
+Economies: `segment = "once"` segments each view once (its self render, or its
+photo with `segment_from = "orig"`) and crops every image of the view with those
+segments, since the renders share the photo's camera; `min_crop_px` leaves out
+segments whose crop is too small for the encoder to read (their pixels are
+NO_SEGMENT at that level).
+
 Backends: segmenter "hier" (nested levels from one merge hierarchy, the CPU
 default), "graph" (one Felzenszwalb pass per level), "sam" (local checkpoint,
 extra [sam]), "sam2" (SAM 2.1, local checkpoint, extra [sam2]) or "truth" (a synthetic scene's part masks: the instrument's); encoder "synthetic" (the stand-in; the default on synthetic scenes)
@@ -34,7 +40,7 @@ from ptovs.encoders import Encoder, get_encoder, prepare_crop
 from ptovs.features import SegmentFeatures, langsplat_suffix, read_langsplat
 from ptovs.registry import scene_input, upstream
 from ptovs.scene import check_size
-from ptovs.segment import Segmenter, check_levels, get_segmenter
+from ptovs.segment import NO_SEGMENT, Level, Segmenter, check_levels, get_segmenter
 from ptovs.stage import stage_command
 
 log = logging.getLogger(__name__)
@@ -100,6 +106,18 @@ class Config:
     stage does not depend on reconstruct: LangSplat's recipe on any geometry)."""
     import_dir: str = ""
     """A LangSplat feature folder to read instead of segmenting and encoding."""
+    segment: Literal["each", "once"] = "each"
+    """"each": segment every image of a view; "once": segment one image of the
+    view (`segment_from`) and crop every image with its segments (the renders
+    share the photo's camera): one segmenter call per view instead of 2 + N."""
+    segment_from: Literal["self", "orig"] = "self"
+    """The image "once" segments: the self render (the photo's camera and
+    appearance without its transient occluders) or the original photo (also
+    when there are no renders)."""
+    min_crop_px: int = 0
+    """Leave out segments whose crop (the longer side of the mask's bounding box,
+    in pixels of the image) is shorter than this: no row is encoded and their
+    pixels have no segment at that level. 0: keep every segment."""
 
 
 @dataclass(frozen=True)
@@ -287,12 +305,13 @@ def precision_sample(
     )  # fmt: skip
 
 
-def check_precision(encoder: Encoder, segmenter: Segmenter, image, crop_size: int):
-    """Run the encoder's precision check on a sample of `image`'s crops, when it
-    asks for one (OpenCLIP with precision "auto"); None otherwise."""
+def check_precision(encoder: Encoder, levels: list, image, crop_size: int):
+    """Run the encoder's precision check on a sample of the crops of `image`
+    (segmented as `levels`), when it asks for one (OpenCLIP with precision
+    "auto"); None otherwise."""
     if getattr(encoder, "precision_wanted", None) != "auto":
         return None
-    sample = precision_sample(image, segmenter.segment(image), crop_size)
+    sample = precision_sample(image, levels, crop_size)
     if not len(sample):
         log.info("precision: no segments to check on; keeping fp32")
         return {"precision": "fp32", "checked": "bf16", "crops": 0}
@@ -308,6 +327,79 @@ def check_precision(encoder: Encoder, segmenter: Segmenter, image, crop_size: in
     return report
 
 
+def crop_sides(level: Level) -> np.ndarray:
+    """[n] the longer side of each segment's crop box (of `level.mask(k)`, the
+    pixels `prepare_crop` cuts out, its box inclusive), in pixels."""
+    if level.masks is None:
+        lab = level.labels
+        n = level.n
+        ys, xs = np.nonzero(lab >= 0)
+        ids = lab[ys, xs]
+        y0 = np.full(n, np.iinfo(np.int64).max)
+        x0 = y0.copy()
+        y1 = np.full(n, -1)
+        x1 = y1.copy()
+        np.minimum.at(y0, ids, ys)
+        np.minimum.at(x0, ids, xs)
+        np.maximum.at(y1, ids, ys)
+        np.maximum.at(x1, ids, xs)
+        return np.maximum(y1 - y0, x1 - x0) + 1
+    sides = []
+    for m in level.masks:
+        rows = np.flatnonzero(m.any(axis=1))
+        cols = np.flatnonzero(m.any(axis=0))
+        sides.append(max(rows[-1] - rows[0], cols[-1] - cols[0]) + 1)
+    return np.array(sides, np.int64)
+
+
+def drop_small_segments(levels: list[Level], min_crop_px: int) -> list[Level]:
+    """Each level without the segments whose crop's longer side is under
+    `min_crop_px` (`crop_sides`): their pixels become NO_SEGMENT and the rest are
+    renumbered 0..n'-1 in their order. 0 returns `levels` unchanged."""
+    if min_crop_px <= 0:
+        return levels
+    out = []
+    for level in levels:
+        keep = crop_sides(level) >= min_crop_px
+        if keep.all():
+            out.append(level)
+            continue
+        new = np.where(keep, np.cumsum(keep) - 1, NO_SEGMENT).astype(np.int32)
+        lab = level.labels
+        labels = np.where(lab >= 0, new[np.maximum(lab, 0)], NO_SEGMENT)
+        masks = None
+        if level.masks is not None:
+            masks = [m for m, k in zip(level.masks, keep, strict=True) if k]
+        out.append(Level(labels.astype(np.int32), masks))
+    return out
+
+
+class _Cut:
+    """A segmenter that hands back levels already cut (by `_cut_levels`), so that
+    `image_features` crops and encodes an image with them."""
+
+    name = "cut"
+
+    def __init__(self, names: tuple[str, ...], levels: list[Level]):
+        self.levels = names
+        self._cut = levels
+
+    def segment(self, image: np.ndarray) -> list[Level]:
+        shape = self._cut[0].labels.shape if self._cut else image.shape[:2]
+        if image.shape[:2] != shape:
+            raise ValueError(f"image {image.shape[:2]} is not the segments' {shape}")
+        return self._cut
+
+
+def _cut_levels(
+    segmenter: Segmenter, stem: str, app: str, image: np.ndarray, min_crop_px: int
+) -> list[Level]:
+    """Segment the image `app` of view `stem`, small segments left out."""
+    if hasattr(segmenter, "select"):  # truth: this view, occluders or not
+        segmenter.select(stem, app == "orig")
+    return drop_small_segments(segmenter.segment(image), min_crop_px)
+
+
 def run(
     inputs: Inputs, config: Config, skip=frozenset()
 ) -> Iterator[tuple[str | None, dict]]:
@@ -321,6 +413,8 @@ def run(
     )
     apps = ["orig"] + (slots if config.images == "all" else [])
     novel = [s for s in slots if s != "self"]
+    # the image a view is segmented from when segment = "once"
+    source = "self" if config.segment_from == "self" and "self" in apps else "orig"
     importing = bool(config.import_dir)
     if importing:
         folder = Path(config.import_dir)
@@ -333,27 +427,37 @@ def run(
         precision = None
         if getattr(encoder, "precision_wanted", None) == "auto":
             v0 = scene.train_views()[0]  # the same sample whatever was skipped
-            if hasattr(segmenter, "select"):
-                segmenter.select(v0.stem, True)
             img0 = (scene.load_image(v0) * 255.0 + 0.5).astype(np.uint8)
-            precision = check_precision(encoder, segmenter, img0, side)
+            cut0 = _cut_levels(segmenter, v0.stem, "orig", img0, config.min_crop_px)
+            precision = check_precision(encoder, cut0, img0, side)
     for v in scene.train_views():
         if v.name in skip:
             continue
         renders = inputs.renders[v.name]["rgb"] if len(apps) > 1 else None
+
+        def image(app: str, v=v, renders=renders) -> np.ndarray:
+            if app == "orig":
+                return (scene.load_image(v) * 255.0 + 0.5).astype(np.uint8)
+            return renders[slots.index(app)]
+
+        shared = None  # the view's segments, cut once
+        if not importing and config.segment == "once":
+            shared = _cut_levels(
+                segmenter, v.stem, source, image(source), config.min_crop_px
+            )
         out: dict[str, np.ndarray] = {}
         for app in apps:
             if importing:
                 f = read_langsplat(folder, v.stem, levels, langsplat_suffix(app, novel))
                 check_size(f.seg[0], v, f"imported LangSplat features {app}")
             else:
-                if app == "orig":
-                    img = (scene.load_image(v) * 255.0 + 0.5).astype(np.uint8)
-                else:
-                    img = renders[slots.index(app)]
-                if hasattr(segmenter, "select"):  # truth: this view, occluders or not
-                    segmenter.select(v.stem, app == "orig")
-                f = image_features(img, segmenter, encoder, config.batch_size, side)
+                img = image(app)
+                cut = shared
+                if cut is None:
+                    cut = _cut_levels(segmenter, v.stem, app, img, config.min_crop_px)
+                f = image_features(
+                    img, _Cut(levels, cut), encoder, config.batch_size, side
+                )
             f.validate(f"{v.name} {app}")
             out.update(f.datasets(app))
         yield v.name, out
@@ -365,6 +469,12 @@ def run(
                     "levels": list(levels),
                     "apps": apps,
                     "segmenter": "import" if importing else config.segmenter,
+                    "segment": None
+                    if importing
+                    else (
+                        f"once from {source}" if config.segment == "once" else "each"
+                    ),
+                    "min_crop_px": None if importing else config.min_crop_px,
                     "encoder": "import" if importing else encoder.name,
                     "encoder_spec": None
                     if importing
@@ -407,6 +517,8 @@ __all__ = [
     "encoder_spec",
     "build_segmenter",
     "command",
+    "crop_sides",
+    "drop_small_segments",
     "encode_levels",
     "image_features",
     "run",
