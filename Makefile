@@ -59,7 +59,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # column, a tiled roof; what it selects is in docs/results.md, "The demo")
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo pictures view test system-deps test-slurm lint format bench bench-accuracy bench-standin bench-multiapp bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
+.PHONY: setup demo pictures view test system-deps test-slurm lint format bench bench-accuracy bench-encoders bench-standin bench-multiapp bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
 
 # where torch and torchvision come from: PyTorch's CPU index by default (PyPI's Linux
 # torch is the CUDA build, several GB); with an NVIDIA GPU give its CUDA index, e.g.
@@ -187,6 +187,19 @@ bench-multiapp: setup
 	$(BIN)/python bench/accuracy.py --preset small --standin 5 --seeds $(MULTIAPP_SEEDS) --dev $(MULTIAPP_DEV) \
 	  --data $(QDATA)/accuracy-v5 --work $(QWORK)/accuracy-v5 \
 	  --labels $(MULTIAPP_LABELS) --base male-truth
+
+# real-class encoders and segmenters on 2 cores, random weights (docs/results.md, "Real
+# encoders on a CPU"): crops/s of each encoder in fp32 and bf16; a view's work on a
+# landmark's photos (segmenters, distinct crops, encoders) and the hours at 763 photos;
+# SAM 2.1 and SAM's split between image encoder and point decoding; the crops that
+# min_crop_px would leave out
+bench-encoders: setup
+	$(BIN)/python bench/encoders.py --out $(QWORK)/encoders.json
+	$(BIN)/python bench/real_extract.py --photos 3 --data $(QWORK)/real_extract \
+	  --out $(QWORK)/real_extract.json
+	$(BIN)/python bench/segmenters.py --out $(QWORK)/segmenters.json
+	$(BIN)/python bench/economies.py --data $(QDATA)/econ --preset landmark --seed 0 \
+	  --photos 20 --views 6 --out $(QWORK)/econ/landmark_s0.json
 
 # how each stage's time, peak RSS and output quality grow with the collection: the
 # landmark world at 100, 200, 400 and 763 photos, one size at a time, the default
