@@ -229,3 +229,47 @@ def test_preflight_runs_a_crop_and_a_phrase(tmp_path, monkeypatch):
     assert "clip_tokenizer" in str(e.value) and "\n" not in str(e.value)
     with pytest.raises(InputError, match="not a tag of"):
         check_openclip(name, ckpt, pretrained="openai")
+
+
+def test_openclip_features_carry_through_train_and_query(
+    extracted_work, tiny_scene_dir, tmp_path
+):
+    """The photo-alone recipe with OpenCLIP features, end to end: query embeds
+    its phrases with the model (and tag) the features recorded, no setting given."""
+    import json
+
+    from conftest import copy_work, run_cli
+    from ptovs.encoders.openclip import build_net, register_tiny
+
+    name = register_tiny()
+    ckpt = tmp_path / "tiny.pt"
+    torch.manual_seed(0)
+    torch.save(build_net(name, None).state_dict(), ckpt)
+    work = copy_work(extracted_work[0], tmp_path / "work")
+    sets = ["--set", "extract-features.encoder=openclip",
+            "--set", f"extract-features.clip_model={name}",
+            "--set", f"extract-features.clip_checkpoint={ckpt}"]  # fmt: skip
+    data = ["--data", str(tiny_scene_dir), "--variant", "langsplat-wild"]
+    run_cli(work, *sets, "train", *data)  # extract-features (photos) runs first
+    # a synthetic scene's query would check the stand-in's vocabulary: say openclip
+    out = run_cli(work, *sets, "--set", "query.encoder=openclip", "query", *data,
+                  "a column", "--views",
+                  "00000002_1036464163.jpg")  # fmt: skip
+    found = sorted(work.rglob("query-out/*/results.json"))
+    assert found, out
+    text = " ".join(p.read_text() for p in found)
+    assert "a column" in text
+    assert all(
+        np.isfinite(v) for p in found for v in _numbers(json.loads(p.read_text()))
+    )
+
+
+def _numbers(obj):
+    if isinstance(obj, dict):
+        for v in obj.values():
+            yield from _numbers(v)
+    elif isinstance(obj, list):
+        for v in obj:
+            yield from _numbers(v)
+    elif isinstance(obj, (int, float)) and not isinstance(obj, bool):
+        yield float(obj)

@@ -762,3 +762,22 @@ def test_release_returns_heap_pages_and_never_fails():
     del buf
     assert isinstance(memory.release(), bool)
     assert isinstance(memory.release(), bool)  # twice: nothing left to give is fine
+
+
+def test_autoencoder_follows_the_features_width():
+    """Encoders wider than 512 (SigLIP B: 768) get an AE of their width at both
+    ends, and it rebuilds from its own weights."""
+    import torch
+
+    from ptovs.nets.autoencoder import LanguageAE
+
+    for dim in (64, 512, 768):
+        ae = LanguageAE(dim).eval()
+        x = torch.nn.functional.normalize(torch.randn(5, dim), dim=-1)
+        with torch.no_grad():
+            y = ae(x)
+        assert y.shape == (5, dim)
+        assert torch.allclose(y.norm(dim=-1), torch.ones(5), atol=1e-5)
+        again = LanguageAE.from_state(ae.state_dict())
+        with torch.no_grad():
+            assert torch.equal(again(x), y)

@@ -8,7 +8,8 @@ back = ae.decode(code)       # [B, 3] -> [B, 512], unit vectors
 
 Encoder: Linear 512→256, then [BatchNorm, ReLU, Linear] to 128, 64, 32 and 3, then
 L2-normalise. Decoder: Linear 3→16, then [ReLU, Linear] to 32, 64, 128, 256, 256 and
-512, then L2-normalise. `decode` also takes codes with any leading shape (rendered
+512, then L2-normalise. Features of another width D (SigLIP's 768) take D in place
+of 512 at both ends. `decode` also takes codes with any leading shape (rendered
 code maps [H, W, 3]).
 """
 
@@ -31,9 +32,18 @@ class LanguageAE(nn.Module):
         self,
         in_dim: int = 512,
         encoder_dims: tuple[int, ...] = ENCODER_DIMS,
-        decoder_dims: tuple[int, ...] = DECODER_DIMS,
+        decoder_dims: tuple[int, ...] | None = None,
     ):
+        """Args:
+        in_dim: the features' width (512 for CLIP ViT-B and MobileCLIP, 768 for
+            SigLIP B, 64 for the tests' tiny model).
+        encoder_dims: widths after the first layer, the code's last.
+        decoder_dims: widths after the code, ending at in_dim; None: LangSplat's
+            16 ... 256, 256 then in_dim.
+        """
         super().__init__()
+        if decoder_dims is None:
+            decoder_dims = DECODER_DIMS[:-1] + (int(in_dim),)
         if decoder_dims[-1] != in_dim:
             raise ValueError(f"decoder must end at {in_dim}, got {decoder_dims}")
         enc: list[nn.Module] = [nn.Linear(in_dim, encoder_dims[0])]
