@@ -10,6 +10,10 @@ Per train view and appearance slot `app` ∈ {orig, nov1.., self}: `seg_<app>`
 `feat_<app>` [n, D] float16 unit rows, `nseg_<app>` [L] rows per level. Root:
 `levels_json` (level names, backends, slots).
 
+A mask that recurs at several levels is encoded once (same crop, same row). With
+OpenCLIP and `precision = "auto"`, a sample of the first view's crops decides
+whether the bf16 image tower is kept (`levels_json`'s `precision` says what and why).
+
 Economies: `segment = "once"` segments each view once (its self render, or its
 photo with `segment_from = "orig"`) and crops every image of the view with those
 segments, since the renders share the photo's camera; `min_crop_px` leaves out
@@ -18,8 +22,10 @@ NO_SEGMENT at that level).
 
 Backends: segmenter "hier" (nested levels from one merge hierarchy, the CPU
 default), "graph" (one Felzenszwalb pass per level), "sam" (local checkpoint,
-extra [sam]), "sam2" (SAM 2.1, local checkpoint, extra [sam2]) or "truth" (a synthetic scene's part masks: the instrument's); encoder "synthetic" (the stand-in; the default on synthetic scenes)
-or "openclip" (local checkpoint, extra [clip]; the default elsewhere). Or
+extra [sam]), "sam2" (SAM 2.1, local checkpoint, extra [sam2]) or "truth" (a
+synthetic scene's part masks: the instrument's); encoder "synthetic" (the stand-in;
+the default on synthetic scenes) or "openclip" (any open_clip model from a local
+checkpoint, extra [clip]; the default elsewhere). Or
 `import_dir`: a LangSplat feature folder (`<id>_f.npy`, `<id>_s.npy`, renders
 `<id>_f_ma_<k>.npy`) used instead of segmenting and encoding.
 """
