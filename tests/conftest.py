@@ -93,6 +93,27 @@ def need_slurm_host(commands: tuple[str, ...]) -> None:
         pytest.fail("the single-node Slurm starts its daemons as root; run as root")
 
 
+def assert_points_match(ours, theirs, img) -> None:
+    """Our point adapter (`ours`, a generator `PointPredictor`) answers three
+    points in one batch as the upstream predictor `theirs` answers each alone
+    (`theirs.predict`, logits and predicted IoUs); both share one encoder pass."""
+    import numpy as np
+    import torch
+
+    points = np.array([[5.0, 7.0], [30.5, 12.0], [50.0, 35.0]])
+    with torch.inference_mode():
+        ours.set_image(img)
+        logits, iou = ours.predict(points)
+        assert logits.shape == (3, 3, *img.shape[:2]) and iou.shape == (3, 3)
+        for i, p in enumerate(points):
+            masks, ious, _ = theirs.predict(
+                point_coords=p[None], point_labels=np.array([1]),
+                multimask_output=True, return_logits=True,
+            )  # fmt: skip
+            np.testing.assert_allclose(logits[i].numpy(), masks, rtol=1e-4, atol=1e-3)
+            np.testing.assert_allclose(iou[i].numpy(), ious, rtol=1e-4, atol=1e-5)
+
+
 def copy_work(src: Path, dst: Path) -> Path:
     """A private copy of a work dir (artifacts, no locks)."""
     shutil.copytree(src, dst, ignore=shutil.ignore_patterns("*.lock"))

@@ -16,6 +16,8 @@ import pytest
 import torch
 from click.testing import CliRunner
 
+from conftest import assert_points_match
+
 pytest.importorskip("sam2")
 
 from ptovs.cli import main as cli  # noqa: E402
@@ -91,18 +93,7 @@ def test_adapter_equals_sam2_image_predictor(tiny_ckpt: Path) -> None:
     assert all(torch.equal(ours_sd[k], v) for k, v in theirs_sd.items())
     theirs = SAM2ImagePredictor(model)
     ours = Sam2Points(theirs)  # one encoder pass serves both
-    img = _image(40, 56)
-    points = np.array([[5.0, 7.0], [30.5, 12.0], [50.0, 35.0]])
-    with torch.inference_mode():
-        ours.set_image(img)
-        logits, iou = ours.predict(points)
-    assert logits.shape == (3, 3, 40, 56) and iou.shape == (3, 3)
-    for i, p in enumerate(points):
-        masks, ious, _ = theirs.predict(
-            point_coords=p[None], point_labels=np.array([1]), return_logits=True
-        )
-        np.testing.assert_allclose(logits[i].numpy(), masks, rtol=1e-4, atol=1e-3)
-        np.testing.assert_allclose(iou[i].numpy(), ious, rtol=1e-4, atol=1e-5)
+    assert_points_match(ours, theirs, _image(40, 56))
     ours.reset()
     assert not theirs._is_image_set
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import assert_points_match
 from ptovs.compat import available
 from ptovs.encoders import get_encoder
 from ptovs.segment import NO_SEGMENT, get_segmenter
@@ -192,28 +193,16 @@ def test_sam_tiny_random_model_runs(tmp_path):
 
 
 @pytest.mark.skipif(not HAS_SAM, reason=NO_SAM)
-def test_sam_adapter_equals_sam_predictor(tmp_path):
+def test_sam_adapter_equals_sam_predictor():
     """Our batched point path answers as segment-anything's own
-    `SamPredictor.predict`, point by point, on the weights load_sam reads back."""
+    `SamPredictor.predict`, point by point, on the same random weights."""
     from ptovs.compat import import_backend
     from ptovs.segment.sam import SamPoints, tiny_sam
 
     model = tiny_sam(seed=3)
     theirs = import_backend("segment_anything").SamPredictor(model)
     ours = SamPoints(theirs)  # one encoder pass serves both
-    img = _blocks(40, 56)
-    points = np.array([[5.0, 7.0], [30.5, 12.0], [50.0, 35.0]])
-    with torch.inference_mode():
-        ours.set_image(img)
-        logits, iou = ours.predict(points)
-        assert logits.shape == (3, 3, 40, 56) and iou.shape == (3, 3)
-        for i, p in enumerate(points):
-            masks, ious, _ = theirs.predict(
-                point_coords=p[None], point_labels=np.array([1]),
-                multimask_output=True, return_logits=True,
-            )  # fmt: skip
-            np.testing.assert_allclose(logits[i].numpy(), masks, rtol=1e-4, atol=1e-3)
-            np.testing.assert_allclose(iou[i].numpy(), ious, rtol=1e-4, atol=1e-5)
+    assert_points_match(ours, theirs, _blocks(40, 56))
 
 
 # ------------------------------------------------------------- OpenCLIP --
