@@ -279,15 +279,11 @@ def unique_segments(
         for k in range(level.n):
             m = np.asarray(level.mask(k), bool)
             rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
-            box = (rows[:1], rows[-1:], cols[:1], cols[-1:]) if rows.size else ()
-            inner = (
-                m[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1] if rows.size else m
-            )
+            box = np.array([rows[0], rows[-1], cols[0], cols[-1]], np.int64)
+            inner = m[box[0] : box[1] + 1, box[2] : box[3] + 1]
             key = hashlib.blake2b(
-                np.concatenate([np.asarray(box, np.int64).ravel(),
-                                np.asarray(inner.shape, np.int64)]).tobytes()
-                + np.packbits(inner).tobytes(), digest_size=16,
-            ).digest()  # fmt: skip
+                box.tobytes() + np.packbits(inner).tobytes(), digest_size=16
+            ).digest()
             if key not in first:
                 first[key] = (lv, k)
                 order.append((lv, k))
