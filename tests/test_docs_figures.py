@@ -4,6 +4,9 @@ The README and docs/results.md say what is true of today's code; docs/findings.m
 and CHANGELOG.md say what was learned and what changed. So:
 
 - every figure the README puts in bold occurs, as written, in docs/results.md;
+- a figure findings.md, guide.md or design.md quotes from a results table (or
+  another page's) is the table's: each such quote is a CLAIMS row, and any
+  "point [low, high]" interval that results.md also gives carries its point;
 - every link into docs/results.md names a heading that exists there;
 - the demo's figures in docs/results.md are the ones `make pictures`
   (bench/pictures.py) wrote to docs/results/demo.json from a finished `make demo`;
@@ -17,6 +20,7 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 from pathlib import Path
 
 import pytest
@@ -118,3 +122,207 @@ def test_slug_matches_github_anchors():
         == "the-papers-multi-appearance-claim"
     )
     assert slug("Speed: the `cpu` kernel") == "speed-the-cpu-kernel"
+
+
+# --- Figures quoted on more than one page -------------------------------------------
+#
+# findings.md, guide.md, design.md and the README may quote a figure that
+# docs/results.md (or another page's table) holds. Two checks keep them equal:
+#
+# - every "point [low, high]" interval a page quotes that also occurs in results.md
+#   must carry a point results.md gives with that interval (an interval is a
+#   fingerprint: the same one with another point is a stale copy);
+# - CLAIMS: (page, pattern, expected) for the other quoted figures. `pattern`'s
+#   groups are the figures as the page writes them; `expected()` reads them from the
+#   table that holds them. A page that no longer says it fails too: reword the
+#   pattern with the sentence, or drop the claim with the figure.
+
+N = r"(\d[\d,]*(?:\.\d+)?)"  # a figure in a claim
+NUMBER = r"[−+-]?\d[\d,]*(?:\.\d+)?(?:e[−+-]?\d+)?"
+INTERVAL = re.compile(rf"({NUMBER})\*{{0,2}}\s+\[({NUMBER}),\s+({NUMBER})\]")
+QUOTING_PAGES = ["README.md", "docs/findings.md", "docs/guide.md", "docs/design.md"]
+
+
+def norm(figure: str) -> str:
+    """A figure as a comparable string: Unicode minus, thousands commas and
+    markup dropped; a number in plain decimal form (6.3e-6 and 6.3e-06 agree)."""
+    s = figure.replace("−", "-").replace(",", "").replace("*", "").replace("`", "")
+    s = s.strip()
+    try:
+        return repr(float(s))
+    except ValueError:
+        return s
+
+
+def first_number(cell: str) -> str:
+    m = re.search(NUMBER, cell.replace("*", ""))
+    assert m, f"no number in table cell {cell!r}"
+    return m.group(0)
+
+
+def table(page: str, header: str) -> list[dict[str, str]]:
+    """The rows of the Markdown table of `page` whose header row contains `header`,
+    each as {column name: cell}, plus "_key": the first cell without markup."""
+    lines = (ROOT / page).read_text().splitlines()
+    for i, line in enumerate(lines):
+        if line.startswith("|") and header in line:
+            names = [c.strip() for c in line.strip().strip("|").split("|")]
+            rows = []
+            for text in lines[i + 2 :]:
+                if not text.startswith("|"):
+                    break
+                cells = [c.strip() for c in text.strip().strip("|").split("|")]
+                rows.append(
+                    {"_key": re.sub(r"[*`]", "", cells[0])}
+                    | dict(zip(names, cells, strict=False))
+                )
+            return rows
+    raise AssertionError(f"{page} has no table whose header holds {header!r}")
+
+
+def row(page: str, header: str, starts: str) -> dict[str, str]:
+    """The one row of that table whose first cell starts with `starts`."""
+    rows = table(page, header)
+    hits = [r for r in rows if r["_key"].startswith(starts.replace("`", ""))]
+    assert len(hits) == 1, f"{page}, table {header!r}: rows {[r['_key'] for r in rows]}"
+    return hits[0]
+
+
+def gb(mb_cell: str) -> str:
+    return f"{float(norm(first_number(mb_cell))) / 1000:.1f}"
+
+
+def extremes(cells: list[str]) -> list[str]:
+    vals = sorted(cells, key=lambda c: float(norm(c)))
+    return [vals[0], vals[-1]]
+
+
+def speedup(cell: str) -> str:
+    m = re.search(rf"\({N}×\)", cell)
+    assert m, cell
+    return m.group(1)
+
+
+R = "docs/results.md"
+GROWTH, BIG = "100: s", "763: peak MB"
+GPU, RASTER = "cuda64", "max rel. err"
+SFM, THREADS = "rotation error median", "2 threads"
+ENC, SEG, RECIPE = "crops/s fp32", "s a photo, 8² points", "recipe, MobileCLIP2-S0"
+PEERS = "| tool |"
+SEGMENTERS = "2-D mIoU, best filter"
+
+
+def _gpu():
+    rows = table(R, GPU)
+    return [
+        *extremes([r["cuda"] for r in rows]),
+        *extremes([r["cuda64"] for r in rows]),
+    ]
+
+
+def _peer(scene):
+    rows = [r for r in table(R, PEERS) if r["scene"] == scene]
+    assert len(rows) == 3, rows
+    # OpenSplat's PSNR reads "a viewer's depth order / its own renderer"; pages
+    # quote its own renderer's, the reading that favours it
+    psnr = [r["held-out PSNR (dB)"].split(" / ")[-1] for r in rows]
+    return [r["s a step"] for r in rows] + [first_number(c) for c in psnr]
+
+
+CLAIMS = [
+    ("docs/findings.md", rf"launch-bound: {N}–{N} ms at every size \(float64 {N}–{N}\)", _gpu),
+    ("docs/findings.md", r"≤ (\S+) at the 99\.9th percentile",
+     lambda: [max((r["p99.9"] for r in table(R, RASTER)), key=lambda c: float(norm(c)))]),
+    ("docs/findings.md", rf"100 photos: {N} s on a slow day, mIoU {N}",
+     lambda: [row(R, GROWTH, "whole chain")["100: s"],
+              row(R, GROWTH, "U_T AUROC; mIoU")["100: s"].split("; ")[1]]),
+    ("docs/findings.md", rf"run end to end on 2 cores\*\*, peak {N} GB, mIoU {N}",
+     lambda: [gb(row(R, BIG, "reconstruct")["763: peak MB"]),
+              re.search(rf"mIoU {N}", row(R, BIG, "quality")["763: s"]).group(1)]),
+    ("docs/findings.md", rf"reconstruct {N} / {N} / {N} GB at 100 / 763 / 2,934",
+     lambda: [gb(row(R, GROWTH, "reconstruct")["100: MB"]),
+              gb(row(R, BIG, "reconstruct")["763: peak MB"]),
+              gb(row(R, BIG, "reconstruct")["2,934: peak MB"])]),
+    ("docs/findings.md", rf"Now {N} GB at 763, and {N} GB in a probe",
+     lambda: [gb(row(R, BIG, "train-male")["763: peak MB"]),
+              gb(row(R, BIG, "train-male")["2,934: peak MB"])]),
+    ("docs/findings.md", rf"only reconstruct uses them \({N}×\s+at 8, {N}× at 16",
+     lambda: [speedup(row(R, THREADS, "reconstruct")[c]) for c in ("8 threads", "16 threads")]),
+    ("docs/findings.md", rf"run slower \({N}–{N}× at 16",
+     lambda: extremes([speedup(row(R, THREADS, s)["16 threads"])
+                       for s in ("extract-features", "uncertainty", "train-ae")])),
+    ("docs/findings.md",
+     rf"median rotation error {N}° and {N}°\s+\(rotations aligned; centres aligned {N}° and {N}°\)",
+     lambda: [re.search(p, row(R, SFM, s)["rotation error median / p90 (°)"]).group(1)
+              for p in (rf"^{N}", rf"centres aligned: {N}")
+              for s in ("fountain_p11", "herzjesu_p8")]),
+    ("docs/findings.md", r"(\d+) distinct crops each",
+     lambda: [re.search(r"crops, (\d+) distinct", (ROOT / R).read_text()).group(1)]),
+    ("docs/findings.md", rf"At the measured {N} crops/s",
+     lambda: [row(R, ENC, "MobileCLIP2-S0")["crops/s fp32"]]),
+    ("docs/findings.md", rf"{N} h with `hier`'s segments",
+     lambda: [row(R, RECIPE, "full, `hier`")["fp32: s a view / h at 763"].split(" / ")[1]]),
+    ("docs/findings.md", rf"bring it to {N} h or {N} h",
+     lambda: [row(R, RECIPE, "full, `hier`")["bf16: s a view / h at 763"].split(" / ")[1],
+              row(R, RECIPE, "photo alone, `hier`")["fp32: s a view / h at 763"].split(" / ")[1]]),
+    ("docs/findings.md", rf"halves the photo \({N} s against {N} s\)",
+     lambda: [row(R, SEG, "SAM 2.1")["s a photo, 8² points"], row(R, SEG, "SAM ViT-B")["s a photo, 8² points"]]),
+    *[("docs/findings.md",
+       rf"\| {scene} \| {N} / {N} / {N} \| {N} / {N} / {N} \|",
+       lambda scene=scene: _peer(scene))
+      for scene in ("herzjesu_p8", "fountain_p11", "bench seed 0")],
+    ("docs/design.md", rf"2-D ceiling of\s+{N} against the graph segmenter's {N}",
+     lambda: [row("docs/findings.md", SEGMENTERS, "truth part masks")[SEGMENTERS],
+              first_number(row("docs/findings.md", SEGMENTERS, "graph (the old default)")[SEGMENTERS])]),
+    ("docs/guide.md", r"take (\d+)² points\s+\(`sam_points_per_side = (\d+)`\)",
+     lambda: 2 * [re.search(r"sam_points_per_side = (\d+)",
+                            (ROOT / "configs" / "photos-cpu.toml").read_text()).group(1)]),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "page, pattern, expected", CLAIMS, ids=[f"{c[0]}:{c[1][:24]}" for c in CLAIMS]
+)
+def test_a_quoted_figure_is_the_measured_one(page, pattern, expected):
+    m = re.search(pattern, (ROOT / page).read_text())
+    assert m, (
+        f"{page} no longer says /{pattern}/: if the sentence was reworded, reword the "
+        "pattern in tests/test_docs_figures.py CLAIMS; if the figure left, drop it"
+    )
+    said, want = list(m.groups()), [str(x) for x in expected()]
+    assert [norm(s) for s in said] == [norm(w) for w in want], (
+        f"{page} says {said} where the measured figures are {want}: rewrite the page "
+        "that is out of date (docs/results.md holds the figure and its command)"
+    )
+
+
+def quoted_intervals(page: str) -> list[tuple[str, str, str]]:
+    return INTERVAL.findall((ROOT / page).read_text())
+
+
+def test_a_quoted_interval_carries_its_measured_point():
+    measured: dict[tuple[str, str], set[str]] = {}
+    for point, lo, hi in quoted_intervals(R):
+        measured.setdefault((norm(lo), norm(hi)), set()).add(norm(point))
+    shared, stale = 0, []
+    for page in QUOTING_PAGES:
+        for point, lo, hi in quoted_intervals(page):
+            points = measured.get((norm(lo), norm(hi)))
+            if points is None:
+                continue  # a figure results.md does not hold (a finding's own)
+            shared += 1
+            if norm(point) not in points:
+                stale.append(f"{page}: {point} [{lo}, {hi}] (results.md: {points})")
+    assert shared >= 10, f"only {shared} shared intervals: is the pattern still right?"
+    assert not stale, "stale copies of results.md's figures:\n" + "\n".join(stale)
+
+
+def test_the_table_reader_reads_what_it_is_given(tmp_path, monkeypatch):
+    page = tmp_path / "p.md"
+    page.write_text(
+        "x\n\n| a | b: s |\n|---|---|\n| **one** | 1,234 |\n| two | 5 |\n\ny\n"
+    )
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    assert row("p.md", "b: s", "one")["b: s"] == "1,234"
+    assert norm("−6.3e-6") == norm("-6.3e-06") and norm("2,494") == norm("2494")
+    assert gb("5,112") == "5.1" and extremes(["9", "10.5", "2"]) == ["2", "10.5"]
