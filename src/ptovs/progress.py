@@ -1,19 +1,29 @@
 """Progress where no progress bar shows: a log line at least every 30 s.
 
 tqdm draws nothing when stderr is not a terminal (a log file, a batch job), so a
-long stage would be silent for many minutes. `Heartbeat` fills that gap: when the
-bar is off, every `every` seconds it logs the step, the caller's figures (loss,
-PSNR, ...), the rate and the time left.
+long stage would be silent for many minutes. `Heartbeat` fills that gap in loops
+of many short steps: when the bar is off, every `every` seconds it logs the step,
+the caller's figures (loss, PSNR, ...), the rate and the time left.
 
     beat = Heartbeat("reconstruct", total=2500, initial=step)
     for ...:
         beat(step, loss=f"{lo:.4f}", psnr=f"{ps:.2f}")
+
+`Ticker` is for loops whose one step may take minutes (a view of extract-features
+with a large encoder): a background thread logs the last known progress every
+`every` seconds while the loop runs, even in the middle of a step.
+
+    with Ticker("extract-features trevi", total=n, enabled=bar.disable) as tick:
+        for view in ...:
+            ...
+            tick.update()
 """
 
 from __future__ import annotations
 
 import logging
 import sys
+import threading
 import time
 
 log = logging.getLogger("ptovs")
@@ -67,4 +77,90 @@ class Heartbeat:
         return True
 
 
-__all__ = ["CHECKPOINT_S", "EVERY_S", "Heartbeat"]
+class Ticker:
+    """Log `desc: done/total units (%), s/unit, time left` every `every` seconds
+    from a background thread while a `with` block runs, unless a terminal shows
+    tqdm's bar instead (`enabled`: force either way; pass the bar's `disable`).
+
+    The thread only reads what `update` recorded, so a line appears even while
+    one step takes longer than `every`; it says how long that step has run. The
+    thread is a daemon and is stopped and joined when the block ends, by an
+    error too, so it never outlives the loop."""
+
+    THREAD = "ptovs-progress"  # the thread's name (tests look for it)
+
+    def __init__(
+        self,
+        desc: str,
+        total: int | None,
+        initial: int = 0,
+        unit: str = "view",
+        every: float | None = None,
+        enabled: bool | None = None,
+        clock=time.monotonic,
+    ) -> None:
+        self.desc, self.total, self.unit = desc, total, unit
+        self.every = EVERY_S if every is None else every  # read now: tests lower it
+        self.enabled = (not sys.stderr.isatty()) if enabled is None else enabled
+        self.clock = clock
+        self.done = self.done0 = initial
+        self.t0 = self.last = clock()  # start; end of the last finished step
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def update(self, n: int = 1) -> None:
+        """Record `n` more steps finished now."""
+        with self._lock:
+            self.done += n
+            self.last = self.clock()
+
+    def line(self) -> str:
+        """The progress line as of now (what the thread logs)."""
+        with self._lock:
+            done, last = self.done, self.last
+        now = self.clock()
+        unit, ran = self.unit, done - self.done0
+        head = f"{self.desc}: {done}"
+        if self.total:
+            head += f"/{self.total} {unit}s ({100.0 * done / self.total:.0f} %)"
+        else:
+            head += f" {unit}s"
+        per = (last - self.t0) / ran if ran > 0 else None
+        parts = [head, "?" if per is None else f"{per:.1f} s/{unit}"]
+        if self.total:
+            left_n = max(self.total - done, 0)
+            if per is None:
+                parts.append("? left")
+            else:  # the step under way has had (now - last) of its share already
+                left = max(left_n * per - (now - last), (left_n - 1) * per, 0.0)
+                parts.append(f"{_clock(left)} left")
+        text = ", ".join(parts)
+        if (self.total is None or done < self.total) and now - last >= self.every:
+            text += f"; {unit} {done + 1} running for {_clock(now - last)}"
+        return text
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.every):
+            log.info("%s", self.line())
+
+    def __enter__(self) -> Ticker:
+        if self.enabled:
+            self._thread = threading.Thread(
+                target=self._run, name=self.THREAD, daemon=True
+            )
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop the thread and wait for it (idempotent)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+
+
+__all__ = ["CHECKPOINT_S", "EVERY_S", "Heartbeat", "Ticker"]
