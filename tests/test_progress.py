@@ -58,9 +58,9 @@ def test_ticker_line_has_rate_time_left_and_the_view_under_way():
     now = [100.0]
     tick = Ticker("extract-features trevi", 10, initial=2, every=30.0,
                   clock=lambda: now[0])  # fmt: skip
-    assert tick.line() == "extract-features trevi: 2/10 views (20 %), ?, ? left"
+    assert tick.line() == "extract-features trevi: 2/10 views (20 %), ? s/view, ? left"
     now[0] = 190.0  # no view finished yet in this run: the first is under way
-    assert tick.line().endswith("? left; view 3 running for 1:30")
+    assert tick.line().endswith("? left; 1:30 since the start")
     tick.update()  # 90 s for one view
     now[0] = 200.0
     # 7 views left at 90 s, 10 s of the next already spent: 10:20
@@ -71,10 +71,10 @@ def test_ticker_line_has_rate_time_left_and_the_view_under_way():
     now[0] = 400.0  # a view slower than the rest: never less than 6 views' time
     assert tick.line() == (
         "extract-features trevi: 3/10 views (30 %), 90.0 s/view, 9:00 left; "
-        "view 4 running for 3:30"
+        "3:30 since the last view"
     )
     no_total = Ticker("x", None, every=30.0, clock=lambda: now[0])
-    assert no_total.line() == "x: 0 views, ?"
+    assert no_total.line() == "x: 0 views, ? s/view"
 
 
 def test_ticker_is_quiet_and_threadless_when_a_bar_shows(caplog):
@@ -111,10 +111,10 @@ def _run_slow(inputs: _SlowInputs, config: _SlowConfig):
 
 
 class _Watch(logging.Handler):
-    """Sets the gate when a line says the second view is under way."""
+    """Sets the gate when a line comes while the second view is under way."""
 
     def emit(self, record):
-        if "view 2 running for" in record.getMessage():
+        if "1/2 views" in (m := record.getMessage()) and "since the last view" in m:
             _GATE["ticked"].set()
 
 
@@ -152,9 +152,9 @@ def test_a_view_stage_logs_while_one_view_runs_and_leaves_no_thread(slow, caplog
     with caplog.at_level(logging.INFO, logger="ptovs"):
         execute(slow(), "toy-slow").close()
     assert _GATE["seen"]  # a line came while the second view was under way
-    lines = [r.getMessage() for r in caplog.records if "running for" in r.getMessage()]
+    lines = [r.getMessage() for r in caplog.records if "since the" in r.getMessage()]
     assert lines[-1].startswith("toy-slow tiny_s0: 1/2 views (50 %), ")
-    assert "s/view" in lines[-1] and "left; view 2 running for " in lines[-1]
+    assert "s/view" in lines[-1] and lines[-1].endswith(" since the last view")
     assert not _tickers()
     with caplog.at_level(logging.INFO, logger="ptovs"):  # failed mid-view
         with pytest.raises(RuntimeError, match="mid-view"):
@@ -185,3 +185,21 @@ def test_a_view_stage_under_a_terminal_bar_logs_no_progress(slow, caplog, monkey
     assert "0/2 [" in term.getvalue()  # tqdm drew its bar there
     assert Ticker.THREAD not in started
     assert not [r for r in caplog.records if r.getMessage().startswith("toy-slow ti")]
+
+
+def test_ticker_keeps_quiet_while_a_heartbeat_speaks(monkeypatch):
+    from ptovs import progress
+
+    monkeypatch.setattr(progress, "_BEAT", [float("-inf")])  # no earlier test's
+    tick = Ticker("reconstruct t", 12, every=30.0)
+    t0 = tick._said
+    assert not tick.due(t0 + 29.0)
+    assert tick.due(t0 + 30.0)  # no Heartbeat line yet
+    now = [0.0]
+    beat = Heartbeat("reconstruct t", 100, enabled=True, clock=lambda: now[0])
+    now[0] = 30.0
+    assert beat(10)  # training logs its own lines (stamped in real time)
+    stamp = progress._BEAT[0]
+    assert stamp >= t0
+    assert not tick.due(stamp + 44.0)  # a beat within 1.5 intervals: quiet
+    assert tick.due(stamp + 45.0)  # the heartbeat went silent: the ticker speaks

@@ -29,6 +29,7 @@ import time
 log = logging.getLogger("ptovs")
 
 EVERY_S = 30.0  # seconds between lines
+_BEAT = [float("-inf")]  # time.monotonic() of the last Heartbeat line, any loop's
 CHECKPOINT_S = 300.0  # a training loop also checkpoints after this long without one
 
 
@@ -68,6 +69,7 @@ class Heartbeat:
         if now - self.last < self.every and step < self.total:
             return False
         self.last = now
+        _BEAT[0] = time.monotonic()  # a Ticker around this loop need not speak
         rate = (step - self.step0) / max(now - self.t0, 1e-9)
         eta = (self.total - step) / rate if rate > 0 else float("inf")
         extra = "".join(f", {k} {v}" for k, v in fields.items())
@@ -83,9 +85,12 @@ class Ticker:
     tqdm's bar instead (`enabled`: force either way; pass the bar's `disable`).
 
     The thread only reads what `update` recorded, so a line appears even while
-    one step takes longer than `every`; it says how long that step has run. The
-    thread is a daemon and is stopped and joined when the block ends, by an
-    error too, so it never outlives the loop."""
+    one step takes longer than `every`; it says how long since the last step. It
+    keeps quiet while a `Heartbeat` speaks (a stage that trains before it yields
+    its first view, as reconstruct does, logs its own iterations), so the log
+    stays one voice and still never pauses for a minute. The thread is a daemon
+    and is stopped and joined when the block ends, by an error too, so it never
+    outlives the loop."""
 
     THREAD = "ptovs-progress"  # the thread's name (tests look for it)
 
@@ -108,6 +113,7 @@ class Ticker:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._said = time.monotonic()  # real time of the last line (or the start)
 
     def update(self, n: int = 1) -> None:
         """Record `n` more steps finished now."""
@@ -127,7 +133,7 @@ class Ticker:
         else:
             head += f" {unit}s"
         per = (last - self.t0) / ran if ran > 0 else None
-        parts = [head, "?" if per is None else f"{per:.1f} s/{unit}"]
+        parts = [head, f"? s/{unit}" if per is None else f"{per:.1f} s/{unit}"]
         if self.total:
             left_n = max(self.total - done, 0)
             if per is None:
@@ -137,12 +143,24 @@ class Ticker:
                 parts.append(f"{_clock(left)} left")
         text = ", ".join(parts)
         if (self.total is None or done < self.total) and now - last >= self.every:
-            text += f"; {unit} {done + 1} running for {_clock(now - last)}"
+            # true whether the stage is inside a view or before its first one
+            since = f"the last {unit}" if ran > 0 else "the start"
+            text += f"; {_clock(now - last)} since {since}"
         return text
 
+    def due(self, now: float) -> bool:
+        """Whether a line is due at `now` (time.monotonic()): `every` since this
+        ticker's last, and 1.5 `every` since any Heartbeat's (its lines come every
+        `every` and a step late; half that again covers the step)."""
+        return now - self._said >= self.every and now - _BEAT[0] >= 1.5 * self.every
+
     def _run(self) -> None:
-        while not self._stop.wait(self.every):
-            log.info("%s", self.line())
+        # wake twice per interval: a line is at most every / 2 late
+        while not self._stop.wait(self.every / 2):
+            now = time.monotonic()
+            if self.due(now):
+                self._said = now
+                log.info("%s", self.line())
 
     def __enter__(self) -> Ticker:
         if self.enabled:
