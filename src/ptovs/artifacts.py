@@ -22,6 +22,10 @@ computes only the rest. `finish()` merges the shards into a temporary
 name appears only when complete. Temporary names are unguessable and created
 exclusively (`ptovs.atomic`), so a link planted in the store is never written
 through.
+Decisions a run makes once for the whole artifact (`Notes`: e.g. the precision
+"auto" kept) live in `<key[:12]>.parts/notes.json`, written before the views they
+govern, so a resumed run reuses them; `finish()` folds them into the root attrs
+(`notes_json`).
 A per-key lock file serialises concurrent runs of the same stage.
 """
 
@@ -323,6 +327,50 @@ def _identity(attrs: Mapping[str, Any]) -> str:
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()
 
 
+class Notes:
+    """Decisions made once per artifact and kept across resumes (`ArtifactWriter.notes`).
+
+    A view stage that decides something from the data before its first view (which
+    precision to encode in, say) stores it here before yielding that view; a run
+    resumed on another machine reads it back instead of deciding again, so every
+    view of one artifact is made the same way. One JSON file in the artifact's
+    `.parts/` folder, tagged with the key and replaced atomically and durably; it
+    goes with the parts (`finish`, `discard`, `remove`).
+    """
+
+    NAME = "notes.json"  # not `*.h5`: never taken for a view's shard
+
+    def __init__(self, folder: Path, key: str):
+        self.path = Path(folder) / self.NAME
+        self.key = key
+
+    def all(self) -> dict[str, Any]:
+        """Every note stored for this key ({} when none, or another key's)."""
+        try:
+            blob = json.loads(self.path.read_text())
+        except FileNotFoundError:
+            return {}
+        except (OSError, ValueError) as exc:
+            log.warning("notes %s are unreadable (%s); ignored", self.path, exc)
+            return {}
+        if not isinstance(blob, dict) or blob.get("key") != self.key:
+            log.warning("notes %s belong to another key; ignored", self.path)
+            return {}
+        return dict(blob.get("notes", {}))
+
+    def get(self, name: str, default: Any = None) -> Any:
+        """The stored value of `name`, or `default`."""
+        return self.all().get(name, default)
+
+    def put(self, name: str, value: Any) -> None:
+        """Store `value` (JSON-serialisable) under `name`, durably, before returning."""
+        notes = dict(self.all(), **{name: value})
+        text = json.dumps({"key": self.key, "notes": notes}, sort_keys=True)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_file(self.path, keep_suffix=False, durable=True) as tmp:
+            tmp.write_text(text)
+
+
 class ArtifactWriter:
     """Resumable writer for one artifact (use through `Store.writer`)."""
 
@@ -331,6 +379,7 @@ class ArtifactWriter:
         self.parts = final.with_suffix(".parts")
         self.attrs = dict(attrs)
         self.parts.mkdir(parents=True, exist_ok=True)
+        self.notes = Notes(self.parts, self.attrs["key"])
         self._done = self._scan()
 
     def _shard(self, name: str) -> Path:
@@ -407,6 +456,9 @@ class ArtifactWriter:
                         f"{dst.name.lstrip('/')}/{path}:{_attr(ds.attrs['sha256'])}"
                     )
             attrs = dict(self.attrs, **(extra_attrs or {}))
+            notes = self.notes.all()
+            if notes:  # the run's decisions, kept with what they made
+                attrs["notes_json"] = json.dumps(notes, sort_keys=True)
             attrs["format"] = FORMAT
             attrs["n_views"] = len(self.done_views())
             attrs["data_sha256"] = _combined(records)
@@ -419,9 +471,14 @@ class ArtifactWriter:
         return Artifact(self.final)
 
     def discard(self) -> None:
-        """Forget every finished view (used by --force)."""
-        shutil.rmtree(self.parts, ignore_errors=True)
+        """Forget every finished view and note (used by --force)."""
+        self.remove()
         self.parts.mkdir(parents=True, exist_ok=True)
+
+    def remove(self) -> None:
+        """Delete the partial artifact (views, notes, the folder): nothing of this
+        key is left, so the next run starts clean."""
+        shutil.rmtree(self.parts, ignore_errors=True)
         self._done = set()
 
 

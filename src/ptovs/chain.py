@@ -16,7 +16,12 @@ A stage's `run` (`ptovs.stage` says what a stage module defines) is called as:
   `load()` gives the state saved by an interrupted run (or None) and whose
   `save(state)` stores one atomically. Long training stages call `save` every N
   iterations, so a killed run resumes from its last checkpoint; the chain deletes
-  the checkpoint once the artifact is complete (and on --force).
+  the checkpoint once the artifact is complete (and on --force);
+- a view stage may take a `notes` keyword: the partial artifact's
+  `ptovs.artifacts.Notes`, where a decision made once for the whole artifact
+  (`put` before the first view it governs) is kept for a resumed run (`get`);
+- a stage that raises `ptovs.errors.UselessOutputError` has its partial artifact
+  (views, notes, checkpoint) deleted, so the rerun after the fix starts clean.
 """
 
 from __future__ import annotations
@@ -35,11 +40,18 @@ from typing import Any
 import click
 from tqdm import tqdm
 
-from ptovs.artifacts import Artifact, Store, provenance, read_json_dataset
+from ptovs.artifacts import (
+    Artifact,
+    ArtifactWriter,
+    Store,
+    provenance,
+    read_json_dataset,
+)
 from ptovs.config import build_config, canonical_json, merge, parse_sets
-from ptovs.errors import MissingInputError
+from ptovs.errors import MissingInputError, UselessOutputError
 from ptovs.keys import artifact_key, fingerprint_files
 from ptovs.pipeline import PIPELINE
+from ptovs.progress import Ticker
 from ptovs.registry import SCENE, SCENE_VERSION, SceneConfig, get_stage
 
 log = logging.getLogger(__name__)
@@ -330,34 +342,23 @@ def execute(chain: Chain, stage: str, *, force: bool = False) -> Artifact:
             writer.discard()
             ckpt.clear()
         kwargs: dict[str, Any] = {}
-        if "ckpt" in inspect.signature(spec.run).parameters:
+        params = inspect.signature(spec.run).parameters
+        if "ckpt" in params:
             kwargs["ckpt"] = ckpt
+        if "notes" in params:
+            kwargs["notes"] = writer.notes
         t0 = time.perf_counter()
-        if spec.kind == "views":
-            done = writer.done_views()
-            if done:
-                log.info("resuming %s: %d views already stored", stage, len(done))
-                if "skip" in inspect.signature(spec.run).parameters:
-                    kwargs["skip"] = frozenset(done)
-            total = spec.count(inputs, config) if spec.count else None
-            bar = tqdm(
-                total=total,
-                initial=len(done),
-                desc=f"{stage} {scene}",
-                unit="view",
-                disable=None,
-                leave=False,
-            )
-            with bar:
-                for name, datasets in spec.run(inputs, config, **kwargs):
-                    if name is None:
-                        writer.write_root(datasets)
-                    elif name not in done:
-                        writer.write_view(name, datasets)
-                        bar.update(1)
-        else:
-            result = spec.run(inputs, config, **kwargs)
-            writer.write_root(result)
+        try:
+            if spec.kind == "views":
+                _run_views(spec, inputs, config, kwargs, writer, f"{stage} {scene}")
+            else:
+                result = spec.run(inputs, config, **kwargs)
+                writer.write_root(result)
+        except UselessOutputError:
+            writer.remove()  # the rerun after the fix starts clean
+            ckpt.clear()
+            log.info("removed the partial %s artifact (key %s)", stage, key[:12])
+            raise
         elapsed = time.perf_counter() - t0
         art = writer.finish(
             {"timings_json": canonical_json({"run_s": round(elapsed, 3)})}
@@ -367,6 +368,42 @@ def execute(chain: Chain, stage: str, *, force: bool = False) -> Artifact:
         if spec.after is not None:
             spec.after(art)
         return art
+
+
+def _run_views(
+    spec: Any,
+    inputs: Any,
+    config: Any,
+    kwargs: dict[str, Any],
+    writer: ArtifactWriter,
+    desc: str,
+) -> None:
+    """Stream a view stage's `run` into `writer`, skipping the views stored by an
+    interrupted run; a bar on a terminal, else a progress line every EVERY_S s
+    (`Ticker`: even while one view takes minutes)."""
+    done = writer.done_views()
+    if done:
+        log.info("resuming %s: %d views already stored", spec.name, len(done))
+        if "skip" in inspect.signature(spec.run).parameters:
+            kwargs = dict(kwargs, skip=frozenset(done))
+    total = spec.count(inputs, config) if spec.count else None
+    bar = tqdm(
+        total=total,
+        initial=len(done),
+        desc=desc,
+        unit="view",
+        disable=None,
+        leave=False,
+    )
+    # the ticker logs exactly when tqdm draws nothing (stderr not a terminal)
+    with bar, Ticker(desc, total, initial=len(done), enabled=bar.disable) as tick:
+        for name, datasets in spec.run(inputs, config, **kwargs):
+            if name is None:
+                writer.write_root(datasets)
+            elif name not in done:
+                writer.write_view(name, datasets)
+                bar.update(1)
+                tick.update(1)
 
 
 def run_stages(

@@ -11,6 +11,12 @@ class MissingInputError(FileNotFoundError):
     """A required file or folder is absent: the message names it and the fix."""
 
 
+class UselessOutputError(InputError):
+    """A stage found mid-run that its output would be useless (e.g. a segmenter
+    that finds nothing): the chain deletes that key's partial artifact, so the
+    rerun after the fix starts clean. The message names the likely causes."""
+
+
 class UnknownImageError(InputError, KeyError):
     """An image name the scene or field does not have (e.g. `--image`)."""
 

@@ -12,7 +12,15 @@ Per train view and appearance slot `app` ∈ {orig, nov1.., self}: `seg_<app>`
 
 A mask that recurs at several levels is encoded once (same crop, same row). With
 OpenCLIP and `precision = "auto"`, a sample of the first view's crops decides
-whether the bf16 image tower is kept (`levels_json`'s `precision` says what and why).
+whether the bf16 image tower is kept (`levels_json`'s `precision` says what and why),
+once per artifact: the choice is stored before the first view, and a resumed run
+reuses it, so one artifact never mixes bf16 and fp32 rows.
+
+A view whose segmented images hold no segment at any level (after `min_crop_px`) is
+logged and counted (`levels_json`'s `empty_views` of `views`). When most views are
+like that (`too_many_empty`) the segmenter is broken for these images (a random or
+wrong checkpoint, thresholds too strict, images too small): the stage stops with an
+error naming those causes and deletes its partial artifact.
 
 Economies: `segment = "once"` segments each view once (its self render, or its
 photo with `segment_from = "orig"`) and crops every image of the view with those
@@ -34,15 +42,16 @@ from __future__ import annotations
 
 import hashlib
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
-from ptovs.artifacts import Artifact, json_dataset, read_json_dataset
+from ptovs.artifacts import Artifact, Notes, json_dataset, read_json_dataset
 from ptovs.encoders import Encoder, get_encoder, prepare_crop
+from ptovs.errors import UselessOutputError
 from ptovs.features import SegmentFeatures, langsplat_suffix, read_langsplat
 from ptovs.registry import scene_input, upstream
 from ptovs.scene import check_size
@@ -318,15 +327,96 @@ def check_precision(encoder: Encoder, levels: list, image, crop_size: int):
         log.info("precision: no segments to check on; keeping fp32")
         return {"precision": "fp32", "checked": "bf16", "crops": 0}
     report = encoder.check_precision(sample)
-    log.info(
-        "precision: %s (bf16 vs fp32 on %d crops: worst centred cosine %.4f, "
-        "top-1 agreement %.3f; bar %.3f / %.2f)%s",
-        report["precision"], report["crops"], report["worst_centred_cosine"],
-        report["top1_agreement"], report["bar"]["worst_centred_cosine"],
-        report["bar"]["top1_agreement"],
-        "" if report["precision"] == "bf16" else ": bf16 disagrees, fp32 kept",
-    )  # fmt: skip
+    if "worst_centred_cosine" in report:
+        log.info(
+            "precision: %s (bf16 vs fp32 on %d crops: worst centred cosine %.4f, "
+            "top-1 agreement %.3f; bar %.3f / %.2f)%s",
+            report["precision"], report["crops"], report["worst_centred_cosine"],
+            report["top1_agreement"], report["bar"]["worst_centred_cosine"],
+            report["bar"]["top1_agreement"],
+            "" if report["precision"] == "bf16" else ": bf16 disagrees, fp32 kept",
+        )  # fmt: skip
+    else:  # a check that did not compare (e.g. bf16 not faster here)
+        log.info("precision: %s (%s)", report["precision"], report)
     return report
+
+
+def decide_precision(
+    encoder: Encoder,
+    notes: Notes | None,
+    sample: Callable[[], tuple[list, np.ndarray]],
+    crop_size: int,
+) -> dict | None:
+    """The precision report of this artifact, and the encoder set to it.
+
+    Made once per artifact: stored in `notes` before the first view is written
+    and read back by a resumed run, which does not check again (another CPU's
+    floats could choose otherwise and mix bf16 and fp32 rows in one artifact).
+    `sample()` gives the (levels, image) the check crops. None when the encoder
+    asks for no check (precision fp32 or bf16 given, or not OpenCLIP)."""
+    if getattr(encoder, "precision_wanted", None) != "auto":
+        return None
+    report = None if notes is None else notes.get("precision")
+    if report is not None:
+        log.info(
+            "precision: %s, as chosen when this artifact was begun (not checked again)",
+            report["precision"],
+        )
+    else:
+        levels, image = sample()
+        report = check_precision(encoder, levels, image, crop_size)
+        if notes is not None:
+            notes.put("precision", report)
+    encoder.precision = report["precision"]
+    return report
+
+
+EMPTY_FIRST = 3
+"""Stop when each of the first this many views has no segment at all."""
+EMPTY_AFTER = 5
+"""From this many views on, stop when more than half have no segment."""
+EMPTY_WARNINGS = 3
+"""Warn for each of the first this many empty views, then for every tenth."""
+
+
+def too_many_empty(empty: int, finished: int, total: int) -> bool:
+    """Whether `empty` of `finished` views (of `total`) without any segment say
+    the segmenter is broken for these images: all of the first EMPTY_FIRST, more
+    than half from EMPTY_AFTER views on, or more than half of the whole scene."""
+    if finished >= total:
+        return 2 * empty > total
+    if finished >= EMPTY_FIRST and empty == finished:
+        return True
+    return finished >= EMPTY_AFTER and 2 * empty > finished
+
+
+def empty_causes(config: Config, shape: tuple[int, int]) -> str:
+    """The likely causes of a segmenter finding nothing, with the config keys
+    to look at (one line, for the error)."""
+    seg = config.segmenter
+    if seg in ("sam", "sam2"):
+        model = config.sam2_model if seg == "sam2" else config.sam_model
+        causes = [
+            f"a wrong or randomly initialised checkpoint (sam_checkpoint = "
+            f"{config.sam_checkpoint!r} for segmenter {seg!r}, model {model!r})",
+            f"prompts too sparse (sam_points_per_side = {config.sam_points_per_side}"
+            f", sam_crop_n_layers = {config.sam_crop_n_layers})",
+        ]
+    elif seg == "hier":
+        causes = [
+            "thresholds too strict (hier_thresholds, hier_min_size = "
+            f"{config.hier_min_size})"
+        ]
+    elif seg == "graph":
+        causes = [
+            f"thresholds too strict (graph_k, graph_min_size = {config.graph_min_size})"
+        ]
+    else:
+        causes = ["part masks missing from the scene's folder"]
+    if config.min_crop_px > 0:
+        causes.append(f"min_crop_px = {config.min_crop_px} leaving out every segment")
+    causes.append(f"images too small ({shape[1]}x{shape[0]} px; see scene.downscale)")
+    return "; ".join(causes)
 
 
 def crop_sides(level: Level) -> np.ndarray:
@@ -403,9 +493,12 @@ def _cut_levels(
 
 
 def run(
-    inputs: Inputs, config: Config, skip=frozenset()
+    inputs: Inputs, config: Config, skip=frozenset(), notes: Notes | None = None
 ) -> Iterator[tuple[str | None, dict]]:
-    """Yield each train view's features for the original and every render."""
+    """Yield each train view's features for the original and every render.
+
+    `notes` (the chain's partial artifact's): where the precision chosen and the
+    views without segments are kept across an interrupted run."""
     scene = inputs.scene
     levels = check_levels(config.levels)
     slots = (
@@ -418,6 +511,7 @@ def run(
     # the image a view is segmented from when segment = "once"
     source = "self" if config.segment_from == "self" and "self" in apps else "orig"
     importing = bool(config.import_dir)
+    views = scene.train_views()
     if importing:
         folder = Path(config.import_dir)
         if not folder.is_dir():
@@ -426,13 +520,19 @@ def run(
         segmenter = build_segmenter(config, scene.root)
         encoder = build_encoder(config, scene.synthetic, scene.root)
         side = crop_side(config, encoder)
-        precision = None
-        if getattr(encoder, "precision_wanted", None) == "auto":
-            v0 = scene.train_views()[0]  # the same sample whatever was skipped
+
+        def first_view() -> tuple[list, np.ndarray]:
+            v0 = views[0]  # the same sample whatever was skipped
             img0 = (scene.load_image(v0) * 255.0 + 0.5).astype(np.uint8)
             cut0 = _cut_levels(segmenter, v0.stem, "orig", img0, config.min_crop_px)
-            precision = check_precision(encoder, cut0, img0, side)
-    for v in scene.train_views():
+            return cut0, img0
+
+        precision = decide_precision(encoder, notes, first_view, side)
+    # views with no segment at any level: kept in the notes, so a resumed run
+    # counts the whole artifact's (a view redone after a kill is counted once)
+    empty = set(notes.get("empty_views", [])) if notes is not None else set()
+    finished = len(skip & {v.name for v in views})
+    for v in views:
         if v.name in skip:
             continue
         renders = inputs.renders[v.name]["rgb"] if len(apps) > 1 else None
@@ -448,6 +548,7 @@ def run(
                 segmenter, v.stem, source, image(source), config.min_crop_px
             )
         out: dict[str, np.ndarray] = {}
+        found = False  # any segment in any image of the view
         for app in apps:
             if importing:
                 f = read_langsplat(folder, v.stem, levels, langsplat_suffix(app, novel))
@@ -457,12 +558,31 @@ def run(
                 cut = shared
                 if cut is None:
                     cut = _cut_levels(segmenter, v.stem, app, img, config.min_crop_px)
+                found = found or any(lv.n > 0 for lv in cut)
                 f = image_features(
                     img, _Cut(levels, cut), encoder, config.batch_size, side
                 )
             f.validate(f"{v.name} {app}")
             out.update(f.datasets(app))
+        finished += 1
+        if not importing and not found:
+            _note_empty(v.name, empty, notes)
+        if not importing and too_many_empty(len(empty), finished, len(views)):
+            causes = empty_causes(config, (v.height, v.width))
+            raise UselessOutputError(
+                f"extract-features: segmenter {config.segmenter!r} found no segment "
+                f"at any level in {len(empty)} of {finished} views (e.g. "
+                f"{', '.join(sorted(empty)[:3])}); likely causes: "
+                f"{causes}. Nothing was kept; fix the config and rerun"
+            )
         yield v.name, out
+    if empty:
+        log.warning(
+            "extract-features: %d of %d views have no segment at any level (their "
+            "pixels have no features): %s",
+            len(empty), len(views), ", ".join(sorted(empty)[:10])
+            + (", ..." if len(empty) > 10 else ""),
+        )  # fmt: skip
     yield (
         None,
         {
@@ -482,10 +602,29 @@ def run(
                     if importing
                     else encoder_spec(config, encoder),
                     "precision": None if importing else precision,
+                    "empty_views": None if importing else len(empty),
+                    "empty_view_names": None if importing else sorted(empty),
+                    "views": len(views),
                 }
             )
         },
     )
+
+
+def _note_empty(name: str, empty: set[str], notes: Notes | None) -> None:
+    """Count a view without segments; warn (the first few, then every tenth)."""
+    if name in empty:  # redone after a kill: counted already
+        return
+    empty.add(name)
+    if notes is not None:
+        notes.put("empty_views", sorted(empty))
+    n = len(empty)
+    if n <= EMPTY_WARNINGS or n % 10 == 0:
+        log.warning(
+            "view %s: the segmenter found no segment at any level (%d such view%s "
+            "so far)",
+            name, n, "" if n == 1 else "s",
+        )  # fmt: skip
 
 
 def _count(inputs: Inputs, config: Config) -> int:
@@ -513,6 +652,8 @@ command = stage_command(
 )
 
 __all__ = [
+    "EMPTY_AFTER",
+    "EMPTY_FIRST",
     "Config",
     "Inputs",
     "build_encoder",
@@ -520,8 +661,10 @@ __all__ = [
     "build_segmenter",
     "command",
     "crop_sides",
+    "decide_precision",
     "drop_small_segments",
     "encode_levels",
     "image_features",
     "run",
+    "too_many_empty",
 ]
