@@ -1,0 +1,287 @@
+"""The real-class chain measured end to end: photos to query and select.
+
+    python bench/real_chain.py --photos 100 --work work/real_chain     # make bench-real-chain
+
+The scene is the `landmark` preset's world with --photos train photos (about 700 px
+on the long side, as PT-OVS's; generated under <work>/data when missing). The
+encoder is MobileCLIP2-S0 with random weights (seeded) written to a local
+`.safetensors` checkpoint, exactly as a user's own file is read: the arithmetic of
+the trained model, not its accuracy. The segmenter is `hier`. Every stage runs in its
+own process as a user runs it (`ptovs --config <cfg> <stage> --variant V`), on
+--threads threads, and is timed from outside (wall s, peak RSS of that process, CPU s,
+the machine's 1-min load before and after):
+
+  full    the paper's recipe (`--variant male`): the photo and its N = 4 renders
+          encoded, uncertainty, train-ae, train-male, query, evaluate, select
+  photo   the photo alone (`--variant langsplat-wild`): originals only, one
+          appearance; reconstruct is shared with `full` (same key, cached), and is
+          counted in both chains' totals
+
+`--sam2 K` also runs extract-features of the photo-alone recipe with SAM 2.1 tiny
+(random weights, `segment = "once"`, --sam2-points² prompts, no crop layer) on a
+K-photo scene of the same world, for the segmenter's seconds a photo.
+
+Results go to <work>/real_chain.json after every stage (a stage measured earlier with
+the same commit, photos, precision and machine is kept unless --fresh), then a table.
+`--project 763` adds each stage's seconds at that many photos, **projected**: per-view
+stages and reconstruct linearly in photos from this run, the rest (train-ae,
+train-male, query, evaluate, select) with the exponent of the stand-in's growth
+runs where docs/results/growth_*.json has them, else linearly. A projection is
+labelled as one wherever it is printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import ROOT, machine_facts, run_stage, save_json, thread_env  # noqa: E402
+
+MODEL = "MobileCLIP2-S0"
+FULL = ["reconstruct", "render-appearances", "extract-features", "uncertainty",
+        "train-ae", "train-male", "query", "evaluate", "select"]  # fmt: skip
+PHOTO = ["reconstruct", "extract-features", "train-ae", "train-male", "query",
+         "evaluate", "select"]  # fmt: skip
+RECIPES = {"full": ("male", FULL), "photo": ("langsplat-wild", PHOTO)}
+PER_VIEW = {"reconstruct", "render-appearances", "extract-features", "uncertainty"}
+
+
+def scene(data: Path, photos: int) -> Path:
+    path = data / f"landmark_s0_p{photos}"
+    if not (path / "dense").is_dir():
+        subprocess.run(
+            [sys.executable, "-m", "ptovs", "-q", "synth-scene", str(data),
+             "--preset", "landmark", "--seed", "0", "--photos", str(photos)],
+            check=True,
+        )  # fmt: skip
+    return path
+
+
+def random_clip(path: Path) -> Path:
+    """MobileCLIP2-S0 with seeded random weights, saved as a user's .safetensors."""
+    if path.is_file():
+        return path
+    import torch
+    from safetensors.torch import save_file
+
+    from ptovs.compat import import_backend
+
+    open_clip = import_backend("open_clip")  # PyPI's torchvision stubbed as ptovs does
+
+    torch.manual_seed(0)
+    net = open_clip.create_model(MODEL, pretrained=None)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    save_file({k: v.contiguous() for k, v in net.state_dict().items()}, str(tmp))
+    os.replace(tmp, path)
+    return path
+
+
+def random_sam2(path: Path) -> Path:
+    """SAM 2.1 tiny with seeded random weights, saved as Meta's checkpoint layout."""
+    if path.is_file():
+        return path
+    import torch
+
+    from ptovs.segment.sam2 import build_sam2_model
+
+    torch.manual_seed(0)
+    net = build_sam2_model("tiny", None)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    torch.save({"model": net.state_dict()}, tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def write_config(work: Path, ckpt: Path, precision: str, sam2: Path | None) -> Path:
+    """configs/photos-cpu.toml with the random checkpoint (and SAM 2.1's settings)."""
+    text = (ROOT / "configs" / "photos-cpu.toml").read_text()
+    text = text.replace(
+        'clip_checkpoint = "ckpt/mobileclip2_s0_open_clip_model.safetensors"',
+        f'clip_checkpoint = "{ckpt}"',
+    ).replace('precision = "auto"', f'precision = "{precision}"')
+    if f'"{ckpt}"' not in text or f'precision = "{precision}"' not in text:
+        raise SystemExit("configs/photos-cpu.toml changed: update bench/real_chain.py")
+    name = f"real_{precision}"
+    if sam2 is not None:
+        text = text.replace('segmenter = "hier"', 'segmenter = "sam2"')
+        text += (
+            f'sam2_model = "tiny"\nsam_checkpoint = "{sam2}"\n'
+            'sam_crop_n_layers = 0\nsegment = "once"\n'
+        )
+        name += "_sam2"
+    # a synthetic scene's query would take the stand-in's text side by default
+    text += '\n[query]\nencoder = "openclip"\n'
+    path = work / f"{name}.toml"
+    path.write_text(text)
+    return path
+
+
+def command(work: Path, cfg: Path, stage: str, sc: Path, variant: str,
+            threads: int, sets: list[str], phrase: str) -> list[str]:  # fmt: skip
+    cmd = [sys.executable, "-m", "ptovs", "--work-dir", str(work / "runs"),
+           "--config", str(cfg), "-q", "--threads", str(threads)]  # fmt: skip
+    if stage == "select":
+        out = work / "out" / f"select_{sc.name}_{variant}.ply"
+        out.parent.mkdir(parents=True, exist_ok=True)
+        return [*cmd, "select", phrase, "--scene", sc.name, "--data", str(sc),
+                "--variant", variant, "--out", str(out), *sets]  # fmt: skip
+    if stage == "query":
+        out = work / "out" / f"query_{sc.name}_{variant}"
+        return [*cmd, "query", "--scene", sc.name, "--data", str(sc), "--variant",
+                variant, "--out", str(out), *sets]  # fmt: skip
+    return [*cmd, stage, "--scene", sc.name, "--data", str(sc),
+            *variant_sets(variant, stage), *sets]  # fmt: skip
+
+
+def variant_sets(variant: str, stage: str) -> list[str]:
+    """The recipe as --set items for a stage command without --variant: its own
+    and its upstream stages' values (`ptovs.variants`)."""
+    from ptovs.variants import VARIANTS
+
+    upto = FULL[: FULL.index(stage) + 1]
+    return [f"--set={st}.{kv}" for st, kvs in VARIANTS[variant].items()
+            if st in upto for kv in kvs]  # fmt: skip
+
+
+def first_phrase(sc: Path) -> str:
+    vocab = json.loads((sc / "synthetic" / "vocabulary.json").read_text())
+    names = vocab.get("parts") or vocab.get("phrases") or vocab
+    if isinstance(names, dict):
+        names = list(names)
+    return str(names[0])
+
+
+def project(stage: str, seconds: float, photos: int, to: int, growth: dict) -> float:
+    if stage in PER_VIEW or stage not in growth:
+        return seconds * to / photos
+    return seconds * (to / photos) ** growth[stage]
+
+
+def growth_exponents() -> dict[str, float]:
+    """Each stage's exponent b of a·photos^b in the stand-in's growth runs."""
+    import math
+
+    out: dict[str, float] = {}
+    for f in sorted((ROOT / "docs" / "results").glob("growth_*.json")):
+        runs = json.loads(f.read_text()).get("runs", {})
+        pts: dict[str, list[tuple[float, float]]] = {}
+        for run in runs.values():
+            for st, rec in run.get("stages", {}).items():
+                if rec.get("exit") == 0:
+                    pts.setdefault(st, []).append((run["photos_asked"], rec["wall_s"]))
+        for st, p in pts.items():
+            if len(p) >= 2:
+                xs = [math.log(x) for x, _ in p]
+                ys = [math.log(y) for _, y in p]
+                mx, my = sum(xs) / len(xs), sum(ys) / len(ys)
+                den = sum((x - mx) ** 2 for x in xs)
+                if den > 0:
+                    out[st] = (
+                        sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True))
+                        / den
+                    )
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--photos", type=int, default=100)
+    ap.add_argument("--recipes", nargs="+", default=["full", "photo"],
+                    choices=list(RECIPES))  # fmt: skip
+    ap.add_argument("--precision", default="fp32", choices=["fp32", "bf16", "auto"])
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--sam2", type=int, default=0, metavar="K",
+                    help="also SAM 2.1 tiny's extract-features on K photos")  # fmt: skip
+    ap.add_argument("--sam2-points", type=int, default=8)
+    ap.add_argument("--project", type=int, default=763)
+    ap.add_argument("--work", type=Path, default=ROOT / "work" / "real_chain")
+    ap.add_argument("--fresh", action="store_true")
+    ap.add_argument("--set", action="append", default=[], metavar="STAGE.KEY=VALUE")
+    a = ap.parse_args()
+    a.work.mkdir(parents=True, exist_ok=True)
+    out_json = a.work / "real_chain.json"
+    facts = machine_facts()
+    old = {} if a.fresh or not out_json.is_file() else json.loads(out_json.read_text())
+    same = all(old.get("machine", {}).get(k) == facts.get(k)
+               for k in ("cpu_model", "cpu_count", "commit"))  # fmt: skip
+    results = {"machine": facts, "photos": a.photos, "precision": a.precision,
+               "threads": a.threads, "model": MODEL, "set": a.set,
+               "runs": old.get("runs", {}) if same else {}}  # fmt: skip
+    sc = scene(a.work / "data", a.photos)
+    ckpt = random_clip(a.work / "ckpt" / "mobileclip2_s0_random.safetensors")
+    cfg = write_config(a.work, ckpt, a.precision, None)
+    env = thread_env(a.threads)
+    logs = a.work / "logs"
+    logs.mkdir(exist_ok=True)
+    phrase = first_phrase(sc)
+    sets = [f"--set={s}" for s in a.set]
+    print(f"real chain: {sc.name}, {MODEL} (random weights, {a.precision}), "
+          f"{a.threads} threads, select {phrase!r}", file=sys.stderr)  # fmt: skip
+
+    def step(label: str, st: str, scn: Path, variant: str, config: Path) -> bool:
+        run = results["runs"].setdefault(
+            label, {"scene": scn.name, "precision": a.precision, "stages": {}}
+        )
+        if run["stages"].get(st, {}).get("exit") == 0:
+            return True
+        cmd = command(a.work, config, st, scn, variant, a.threads, sets, phrase)
+        rec = run_stage(cmd, env, logs, f"{label}-{st}")
+        rec["date"] = time.strftime("%Y-%m-%d %H:%M")
+        run["stages"][st] = rec
+        save_json(out_json, results)
+        print(f"{label:<7} {st:<20} {rec['wall_s']:9.1f} s {rec['peak_rss_mb']:7.0f} MB"
+              f"  load {rec['load']}  exit {rec['exit']}", file=sys.stderr, flush=True)  # fmt: skip
+        if rec["exit"] != 0:
+            print(rec.get("stderr_tail", "")[-1500:], file=sys.stderr)
+        return rec["exit"] == 0
+
+    for name in a.recipes:
+        variant, stages = RECIPES[name]
+        for st in stages:
+            if not step(name, st, sc, variant, cfg):
+                break
+    if a.sam2:
+        sc2 = scene(a.work / "data", a.sam2)
+        sam = random_sam2(a.work / "ckpt" / "sam2.1_hiera_tiny_random.pt")
+        cfg2 = write_config(a.work, ckpt, a.precision, sam)
+        cfg2.write_text(cfg2.read_text().replace(
+            "sam_crop_n_layers", f"sam_points_per_side = {a.sam2_points}\n"
+            "sam_crop_n_layers"))  # fmt: skip
+        step("sam2", "extract-features", sc2, "langsplat-wild", cfg2)
+    report(results, a.project)
+
+
+def report(results: dict, to: int) -> None:
+    growth = growth_exponents()
+    n = results["photos"]
+    print(f"\n| stage | recipe | seconds ({n} photos, measured) | peak MB | "
+          f"seconds at {to} photos (projected) |\n|---|---|---|---|---|")  # fmt: skip
+    for label, run in results["runs"].items():
+        total, proj = 0.0, 0.0
+        full = run["stages"]
+        if label != "sam2":  # the shared reconstruct counts in both chains
+            shared = {k: v for r in results["runs"].values()
+                      for k, v in r["stages"].items() if k == "reconstruct"}  # fmt: skip
+            full = {**shared, **full}
+        for st, rec in full.items():
+            if rec.get("exit") != 0:
+                continue
+            total += rec["wall_s"]
+            p = project(st, rec["wall_s"], n, to, growth)
+            proj += p
+            print(f"| {st} | {label} | {rec['wall_s']:.0f} | {rec['peak_rss_mb']:.0f} "
+                  f"| {p:.0f} |")  # fmt: skip
+        print(f"| **whole chain** | {label} | **{total:.0f}** ({total / 3600:.2f} h) | "
+              f"| **{proj:.0f}** ({proj / 3600:.2f} h, projected) |")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
