@@ -38,7 +38,7 @@ from tqdm import tqdm
 from ptovs.artifacts import Artifact, Store, provenance, read_json_dataset
 from ptovs.config import build_config, canonical_json, merge, parse_sets
 from ptovs.errors import MissingInputError
-from ptovs.keys import artifact_key, fingerprint_files
+from ptovs.keys import artifact_key, fingerprint_files, model_file_deps
 from ptovs.pipeline import PIPELINE
 from ptovs.registry import SCENE, SCENE_VERSION, SceneConfig, get_stage
 
@@ -132,6 +132,7 @@ class Chain:
         self.sets = dict(sets or {})
         self._keys: dict[str, str] = {}
         self._configs: dict[str, Any] = {}
+        self._deps: dict[str, dict[str, str]] = {}
 
     def config(self, stage: str) -> Any:
         if stage not in self._configs:
@@ -146,15 +147,21 @@ class Chain:
         return {name: self.key(up) for name, up in needed.items()}
 
     def deps(self, stage: str) -> dict[str, str]:
-        """What the stage's key covers besides its config: the upstream keys and
-        the stage's extra digests (as "extra:<name>"); stored as the artifact's
-        inputs."""
-        spec = get_stage(stage)
-        deps = self.upstream_keys(stage)
-        if spec.extra_key is not None:
-            extra = spec.extra_key(self.config(stage), self.scene)
-            deps.update({f"extra:{k}": v for k, v in extra.items()})
-        return deps
+        """What the stage's key covers besides its config: the upstream keys, the
+        stage's extra digests (as "extra:<name>") and the content of the model
+        files its config names (as "file:<field>", `ptovs.keys.MODEL_FILES`);
+        stored as the artifact's inputs. Computed once: the inputs recorded are
+        those the key was made of."""
+        if stage not in self._deps:
+            spec = get_stage(stage)
+            config = self.config(stage)
+            deps = self.upstream_keys(stage)
+            if spec.extra_key is not None:
+                extra = spec.extra_key(config, self.scene)
+                deps.update({f"extra:{k}": v for k, v in extra.items()})
+            deps.update(model_file_deps(stage, config, self.ctx.work_dir))
+            self._deps[stage] = deps
+        return dict(self._deps[stage])
 
     def key(self, stage: str) -> str:
         if stage == SCENE:
@@ -282,14 +289,20 @@ class Chain:
             changed, config_differs = min(
                 map(differences, others), key=lambda d: (len(d[0]) + d[1], d[1])
             )
-            names = [k.removeprefix("extra:") for k in changed]
+            files = [k.removeprefix("file:") for k in changed if k[:5] == "file:"]
+            names = [k.removeprefix("extra:") for k in changed if k[:5] != "file:"]
             why = (
                 f"upstream changed ({', '.join(names)})"
-                if changed and not config_differs
+                if names and not config_differs
                 else f"config and upstream changed ({', '.join(names)})"
-                if changed
+                if names
                 else "config or version changed"
+                if config_differs or not files
+                else ""
             )
+            if files:  # a checkpoint replaced at the same path
+                what = f"model file changed ({', '.join(files)})"
+                why = f"{what}, {why}" if why else what
             for art in others:
                 art.close()
             return "stale", f"{why}; run: {self.hint(stage)}"
