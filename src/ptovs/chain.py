@@ -52,10 +52,39 @@ class RunContext:
     work_dir: Path
     config: dict[str, Any] = field(default_factory=dict)
     force: bool = False
+    given: Any = None
+    """The group's --config file and --set items (`ptovs.scene_config.GivenConfig`):
+    a scene's config is recorded from them, or, without --config, the recorded
+    one is used (`for_scene`). None (scripts): `config` is used as it is."""
+    overrides: dict[str, Any] = field(default_factory=dict)
+    """A command's own options over the config (`with_overrides`): they stay on
+    top of a scene's recorded config too."""
+    _scenes: dict[str, RunContext] = field(default_factory=dict, repr=False)
 
     @property
     def store(self) -> Store:
         return Store(self.work_dir)
+
+    def with_overrides(self, over: dict[str, Any]) -> RunContext:
+        """This context with a command's own config values on top."""
+        return RunContext(self.work_dir, merge(self.config, over), self.force,
+                          self.given, merge(self.overrides, over))  # fmt: skip
+
+    def for_scene(self, scene: str) -> RunContext:
+        """The context for one scene: without --config, the config recorded for
+        it (`ptovs.scene_config`), said in one line; with --config, that file,
+        recorded for the scene once the command's checks pass. Once per scene."""
+        if self.given is None:
+            return self
+        if scene not in self._scenes:
+            from ptovs.scene_config import scene_config
+
+            config = scene_config(self.work_dir, scene, self.given, self.config,
+                                  self.overrides)  # fmt: skip
+            self._scenes[scene] = RunContext(
+                self.work_dir, config, self.force, None, self.overrides
+            )
+        return self._scenes[scene]
 
     def section(self, name: str, sets: Iterable[str] = ()) -> dict[str, Any]:
         """Config section `name` with this command's `--set` items applied."""
@@ -127,7 +156,7 @@ class Chain:
         scene: SceneRef,
         sets: Mapping[str, Iterable[str]] | None = None,
     ):
-        self.ctx = ctx
+        self.ctx = ctx.for_scene(scene.name)
         self.scene = scene
         self.sets = dict(sets or {})
         self._keys: dict[str, str] = {}

@@ -8,7 +8,9 @@ folder: `MODEL_FILES`) enters its stage's key by content too (`model_file_deps`)
 so a fine-tuned model at the path of the original gives new keys; its digest is
 cached in `<work>/.model-digests.json` by (absolute path, size, mtime_ns). Under
 `read_only()` (`ptovs status`, the preflight checks) nothing is written, those
-caches included: what was hashed is kept in memory until `flush_fingerprints`.
+caches included: what was hashed is kept in memory until `flush_fingerprints`,
+as are the small files a command writes only once its checks pass
+(`write_when_checked`: the scene's recorded config).
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ READ_ONLY: contextvars.ContextVar[bool] = contextvars.ContextVar(
 
 
 _PENDING: dict[Path, dict] = {}  # fingerprint caches computed while read-only
+_DEFERRED: dict[Path, str] = {}  # small files written when the checks pass
 
 
 @contextlib.contextmanager
@@ -70,15 +73,26 @@ def _write_fingerprints(cache: Path, memo: dict) -> None:
         tmp.write_text(json.dumps(memo))
 
 
+def write_when_checked(path: Path, text: str) -> None:
+    """Write `path` (atomically) when the command's checks pass and its stages
+    are about to run (`flush_fingerprints`); dropped if they fail."""
+    _DEFERRED[Path(path)] = text
+
+
 def flush_fingerprints(write: bool = True) -> None:
     """Write (or, `write=False`, drop) the fingerprint caches computed while
-    read-only: a preflight that passes keeps its hashing, one that fails leaves
-    the work dir as it was."""
-    pending = dict(_PENDING)
+    read-only and the files of `write_when_checked`: a preflight that passes keeps
+    its hashing, one that fails leaves the work dir as it was."""
+    pending, deferred = dict(_PENDING), dict(_DEFERRED)
     _PENDING.clear()
+    _DEFERRED.clear()
     if write:
         for cache, memo in pending.items():
             _write_fingerprints(cache, memo)
+        for path, text in deferred.items():
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with atomic_file(path, keep_suffix=False) as tmp:
+                tmp.write_text(text)
 
 
 def file_sha256(path: Path) -> str:
