@@ -100,9 +100,11 @@ view: setup
 
 # TEST_JOBS pytest workers (pytest-xdist): the suite waits on processes, browsers and
 # a Slurm for much of its time, so two workers on two cores finish it sooner; the
-# Slurm tests share one worker (tests/conftest.py)
+# Slurm tests share one worker (tests/conftest.py). Without root and the system
+# packages, the first line says which are missing and the suite runs without their
+# tests (named in the summary); CI=true or PTOVS_REQUIRE_SYSTEM_DEPS=1 requires them
 TEST_JOBS ?= 2
-test: setup system-deps
+test: system-deps setup
 	$(BIN)/python -m pytest -q -n $(TEST_JOBS) --dist loadgroup --durations=25
 
 # the README's commands run as written on the synthetic scenes they name (about an
@@ -111,9 +113,9 @@ check-readme: setup
 	$(BIN)/python tools/check_readme.py --root work/readme
 
 # the system packages the tests need (g++, chromium, a single-node Slurm): installed
-# when run as root, else the one command to run is printed before the suite starts
+# when run as root (sudo make system-deps); else one line names the missing ones
 system-deps:
-	bash tools/system-deps.sh
+	@bash tools/system-deps.sh
 
 # the workflow on a real single-node Slurm alone (root; apt-get install slurm-wlm munge
 # slurmdbd mariadb-server): `make test` runs it too

@@ -2,10 +2,92 @@
 
 from __future__ import annotations
 
+import os
+import re
 import shutil
 from pathlib import Path
 
 import pytest
+
+# System packages (tools/system-deps.sh installs them as root): without them a test
+# that needs one is skipped, and the summary names them and the one command that
+# installs them; where they are required (CI=true, PTOVS_REQUIRE_SYSTEM_DEPS=1) it
+# fails instead, so CI never passes by skipping.
+SYSTEM_FIX = "sudo make system-deps"
+ROOT_FIX = "sudo make test-slurm"
+SLURM_PACKAGES = "slurm-wlm munge slurmdbd mariadb-server"
+# the command each package provides (the header's check, as the script's)
+SYSTEM_COMMANDS = {"g++": "g++", "chromium": "chromium", "slurmctld": "slurm-wlm",
+                   "slurmdbd": "slurmdbd", "munged": "munge",
+                   "mariadbd": "mariadb-server"}  # fmt: skip
+_TAG = re.compile(r"^\[(system|root): ([^\]]*)\]")
+
+
+def system_deps_required() -> bool:
+    """True in CI (CI=true) or with PTOVS_REQUIRE_SYSTEM_DEPS=1: a missing system
+    package fails its tests instead of skipping them."""
+    ci = os.environ.get("CI", "").strip().lower() in ("1", "true", "yes")
+    return ci or os.environ.get("PTOVS_REQUIRE_SYSTEM_DEPS", "").strip() == "1"
+
+
+def need_system(packages: str, present: bool, *, module: bool = False) -> None:
+    """Skip the test (fail it where they are required) when the system `packages`
+    (Debian names, space-separated) are missing; `module`: at module level."""
+    if present:
+        return
+    why = f"[system: {packages}] not installed; install: {SYSTEM_FIX}"
+    if system_deps_required():
+        pytest.fail(f"{why} (required: CI or PTOVS_REQUIRE_SYSTEM_DEPS=1)",
+                    pytrace=False)  # fmt: skip
+    pytest.skip(why, allow_module_level=module)
+
+
+def has_compiler() -> bool:
+    """A C++ compiler for the compiled CPU rasterizer ($CXX, c++, g++ or clang++)."""
+    names = (os.environ.get("CXX", "c++"), "g++", "clang++")
+    return any(shutil.which(c) for c in names)
+
+
+def missing_system_packages() -> list[str]:
+    """The Debian packages of `SYSTEM_COMMANDS` whose command is not on PATH."""
+    return list(dict.fromkeys(pkg for cmd, pkg in SYSTEM_COMMANDS.items()
+                              if shutil.which(cmd) is None))  # fmt: skip
+
+
+def pytest_report_header(config):
+    missing = missing_system_packages()
+    if not missing:
+        return None
+    then = "their tests fail" if system_deps_required() else "their tests are skipped"
+    return (f"system packages missing: {' '.join(missing)}; {then} "
+            f"(install: {SYSTEM_FIX})")  # fmt: skip
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """One line per reason: how many tests were skipped for missing system
+    packages (and which), and for not being root, with the command that fixes it."""
+    counts: dict[str, int] = {}
+    packages: dict[str, None] = {}
+    for rep in terminalreporter.stats.get("skipped", []):
+        longrepr = getattr(rep, "longrepr", None)
+        seq = isinstance(longrepr, tuple | list)  # a list when xdist sent it
+        reason = str(longrepr[2]) if seq else str(longrepr or "")
+        m = _TAG.search(reason.removeprefix("Skipped: "))
+        if m is None:
+            continue
+        counts[m[1]] = counts.get(m[1], 0) + 1
+        if m[1] == "system":
+            packages.update(dict.fromkeys(m[2].split()))
+    if counts.get("system"):
+        terminalreporter.write_line(
+            f"{counts['system']} skipped for missing system packages "
+            f"({' '.join(packages)}); install them: {SYSTEM_FIX}"
+        )
+    if counts.get("root"):
+        terminalreporter.write_line(
+            f"{counts['root']} skipped: they start a single-node Slurm as root; "
+            f"run them as root: {ROOT_FIX}"
+        )
 
 
 def pytest_collection_modifyitems(config, items):
@@ -81,16 +163,14 @@ def trained_work(
 
 
 def need_slurm_host(commands: tuple[str, ...]) -> None:
-    """Fail (never skip) unless the test Slurm can start here: root and Debian's
-    packages (`.ci/run` installs them)."""
-    import os
-
-    missing = [x for x in commands if shutil.which(x) is None]
-    if missing:
-        pytest.fail(f"not installed: {', '.join(missing)}; as root: apt-get install -y "
-                    "slurm-wlm munge slurmdbd mariadb-server")  # fmt: skip
+    """Skip unless the test Slurm can start here, root and Debian's packages
+    (`need_system`); where they are required (CI), fail instead."""
+    need_system(SLURM_PACKAGES, all(shutil.which(x) for x in commands))
     if os.geteuid() != 0:
-        pytest.fail("the single-node Slurm starts its daemons as root; run as root")
+        why = f"[root: slurm] the single-node Slurm starts its daemons as root: {ROOT_FIX}"
+        if system_deps_required():
+            pytest.fail(why, pytrace=False)
+        pytest.skip(why)
 
 
 def assert_points_match(ours, theirs, img) -> None:

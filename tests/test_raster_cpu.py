@@ -14,19 +14,14 @@ elements (the boundary band). With the seeds below no element falls in the band.
 from __future__ import annotations
 
 import math
-import os
-import shutil
 
 import pytest
 import torch
 
+from conftest import has_compiler, need_system
 from ptovs.raster import _common, _reference
 
-if not any(shutil.which(c) for c in (os.environ.get("CXX", "c++"), "g++", "clang++")):
-    pytest.skip(
-        "no C++ compiler: the compiled CPU kernel cannot be built",
-        allow_module_level=True,
-    )
+need_system("g++", has_compiler(), module=True)  # else the kernel cannot be built
 
 from ptovs.raster import _cpu  # noqa: E402
 

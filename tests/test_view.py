@@ -20,7 +20,7 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from conftest import RECON, copy_work
+from conftest import RECON, copy_work, need_system
 from ptovs.cli import main
 from ptovs.errors import InputError
 from ptovs.field.ply import read_ply
@@ -563,8 +563,7 @@ def test_page_in_a_real_browser(session, tmp_path):
     """Loads the page in Debian's chromium, types the phrase, presses Highlight,
     and checks the screenshot: not blank, and the highlight colour is there."""
     _need_viser()
-    if CHROMIUM is None:
-        pytest.fail("no chromium on PATH: apt-get install chromium (.ci/run does)")
+    need_system("chromium", CHROMIUM is not None)
     try:
         from playwright.sync_api import sync_playwright
     except ImportError:

@@ -49,7 +49,7 @@ from ptovs.artifacts import (
 )
 from ptovs.config import build_config, canonical_json, merge, parse_sets
 from ptovs.errors import MissingInputError, UselessOutputError
-from ptovs.keys import artifact_key, fingerprint_files
+from ptovs.keys import artifact_key, fingerprint_files, model_file_deps
 from ptovs.pipeline import PIPELINE
 from ptovs.progress import Ticker
 from ptovs.registry import SCENE, SCENE_VERSION, SceneConfig, get_stage
@@ -64,10 +64,39 @@ class RunContext:
     work_dir: Path
     config: dict[str, Any] = field(default_factory=dict)
     force: bool = False
+    given: Any = None
+    """The group's --config file and --set items (`ptovs.scene_config.GivenConfig`):
+    a scene's config is recorded from them, or, without --config, the recorded
+    one is used (`for_scene`). None (scripts): `config` is used as it is."""
+    overrides: dict[str, Any] = field(default_factory=dict)
+    """A command's own options over the config (`with_overrides`): they stay on
+    top of a scene's recorded config too."""
+    _scenes: dict[str, RunContext] = field(default_factory=dict, repr=False)
 
     @property
     def store(self) -> Store:
         return Store(self.work_dir)
+
+    def with_overrides(self, over: dict[str, Any]) -> RunContext:
+        """This context with a command's own config values on top."""
+        return RunContext(self.work_dir, merge(self.config, over), self.force,
+                          self.given, merge(self.overrides, over))  # fmt: skip
+
+    def for_scene(self, scene: str) -> RunContext:
+        """The context for one scene: without --config, the config recorded for
+        it (`ptovs.scene_config`), said in one line; with --config, that file,
+        recorded for the scene once the command's checks pass. Once per scene."""
+        if self.given is None:
+            return self
+        if scene not in self._scenes:
+            from ptovs.scene_config import scene_config
+
+            config = scene_config(self.work_dir, scene, self.given, self.config,
+                                  self.overrides)  # fmt: skip
+            self._scenes[scene] = RunContext(
+                self.work_dir, config, self.force, None, self.overrides
+            )
+        return self._scenes[scene]
 
     def section(self, name: str, sets: Iterable[str] = ()) -> dict[str, Any]:
         """Config section `name` with this command's `--set` items applied."""
@@ -139,11 +168,12 @@ class Chain:
         scene: SceneRef,
         sets: Mapping[str, Iterable[str]] | None = None,
     ):
-        self.ctx = ctx
+        self.ctx = ctx.for_scene(scene.name)
         self.scene = scene
         self.sets = dict(sets or {})
         self._keys: dict[str, str] = {}
         self._configs: dict[str, Any] = {}
+        self._deps: dict[str, dict[str, str]] = {}
 
     def config(self, stage: str) -> Any:
         if stage not in self._configs:
@@ -158,15 +188,21 @@ class Chain:
         return {name: self.key(up) for name, up in needed.items()}
 
     def deps(self, stage: str) -> dict[str, str]:
-        """What the stage's key covers besides its config: the upstream keys and
-        the stage's extra digests (as "extra:<name>"); stored as the artifact's
-        inputs."""
-        spec = get_stage(stage)
-        deps = self.upstream_keys(stage)
-        if spec.extra_key is not None:
-            extra = spec.extra_key(self.config(stage), self.scene)
-            deps.update({f"extra:{k}": v for k, v in extra.items()})
-        return deps
+        """What the stage's key covers besides its config: the upstream keys, the
+        stage's extra digests (as "extra:<name>") and the content of the model
+        files its config names (as "file:<field>", `ptovs.keys.MODEL_FILES`);
+        stored as the artifact's inputs. Computed once: the inputs recorded are
+        those the key was made of."""
+        if stage not in self._deps:
+            spec = get_stage(stage)
+            config = self.config(stage)
+            deps = self.upstream_keys(stage)
+            if spec.extra_key is not None:
+                extra = spec.extra_key(config, self.scene)
+                deps.update({f"extra:{k}": v for k, v in extra.items()})
+            deps.update(model_file_deps(stage, config, self.ctx.work_dir))
+            self._deps[stage] = deps
+        return dict(self._deps[stage])
 
     def key(self, stage: str) -> str:
         if stage == SCENE:
@@ -294,14 +330,20 @@ class Chain:
             changed, config_differs = min(
                 map(differences, others), key=lambda d: (len(d[0]) + d[1], d[1])
             )
-            names = [k.removeprefix("extra:") for k in changed]
+            files = [k.removeprefix("file:") for k in changed if k[:5] == "file:"]
+            names = [k.removeprefix("extra:") for k in changed if k[:5] != "file:"]
             why = (
                 f"upstream changed ({', '.join(names)})"
-                if changed and not config_differs
+                if names and not config_differs
                 else f"config and upstream changed ({', '.join(names)})"
-                if changed
+                if names
                 else "config or version changed"
+                if config_differs or not files
+                else ""
             )
+            if files:  # a checkpoint replaced at the same path
+                what = f"model file changed ({', '.join(files)})"
+                why = f"{what}, {why}" if why else what
             for art in others:
                 art.close()
             return "stale", f"{why}; run: {self.hint(stage)}"

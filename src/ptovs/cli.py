@@ -13,7 +13,6 @@ import click
 
 from ptovs import __version__
 from ptovs.chain import RunContext, run_stages
-from ptovs.config import load_config, merge, parse_sets
 from ptovs.errors import InputError, MissingInputError
 from ptovs.locate import resolve_scene
 from ptovs.options import chain_options, scene_options, variant_chain
@@ -176,7 +175,9 @@ def _setup_logging(verbose: int, quiet: int) -> None:
     "config_file",
     type=click.Path(path_type=Path),
     default=None,
-    help="TOML file with one [section] per stage plus [scene].",
+    help="TOML file with one [section] per stage plus [scene]. Recorded for the "
+    "scene once a command runs stages with it (<work>/<scene>/config.json): later "
+    "commands on that scene without --config use the recorded one, and say so.",
 )
 @click.option(
     "--set",
@@ -232,17 +233,24 @@ def main(
         import torch
 
         torch.set_num_threads(threads)
+    from ptovs.keys import flush_fingerprints
+    from ptovs.scene_config import GivenConfig
+
+    flush_fingerprints(write=False)  # nothing left pending by an earlier call
     try:
-        config = merge(load_config(config_file), parse_sets(sets))
+        given = GivenConfig.read(config_file, sets)
+        config = given.config()
         if config:
             from ptovs.config import check_config
 
             check_config(config, "--config/--set")
     except (InputError, MissingInputError) as exc:
         raise click.ClickException(str(exc)) from None
+    except OSError as exc:  # e.g. a --config that cannot be read
+        raise click.ClickException(_user_message(exc)) from None
     if work_dir is None:
         work_dir = Path(os.environ.get("PTOVS_WORK_DIR", "work"))
-    ctx.obj = RunContext(work_dir=work_dir, config=config, force=force)
+    ctx.obj = RunContext(work_dir=work_dir, config=config, force=force, given=given)
 
 
 def _standin_option(version: int) -> int:
@@ -348,6 +356,7 @@ def _status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:
     click.echo(f"work dir: {Path(obj.work_dir).resolve()}")
 
     name, folder, photos = scene_source(scene_name, data)
+    obj = obj.for_scene(name)  # the config recorded for the scene, without --config
     sfm_line = None
     if photos is not None:
         key, state, posed = pose_photos(obj, name, photos, run=False)

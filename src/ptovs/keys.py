@@ -3,9 +3,14 @@
 `artifact_key` hashes a stage's name, VERSION, canonical config
 (`ptovs.config.canonical_json`) and upstream keys; a scene's key covers its
 files through `fingerprint_files`, whose per-file digests are cached in the work
-dir by (size, mtime). Under `read_only()` (`ptovs status`, the preflight checks)
-nothing is written, that cache included: what was hashed is kept in memory until
-`flush_fingerprints`.
+dir by (size, mtime). A model file a config names (a checkpoint, a tokenizer
+folder: `MODEL_FILES`) enters its stage's key by content too (`model_file_deps`),
+so a fine-tuned model at the path of the original gives new keys; its digest is
+cached in `<work>/.model-digests.json` by (absolute path, size, mtime_ns). Under
+`read_only()` (`ptovs status`, the preflight checks) nothing is written, those
+caches included: what was hashed is kept in memory until `flush_fingerprints`,
+as are the small files a command writes only once its checks pass
+(`write_when_checked`: the scene's recorded config).
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ READ_ONLY: contextvars.ContextVar[bool] = contextvars.ContextVar(
 
 
 _PENDING: dict[Path, dict] = {}  # fingerprint caches computed while read-only
+_DEFERRED: dict[Path, str] = {}  # small files written when the checks pass
 
 
 @contextlib.contextmanager
@@ -67,15 +73,35 @@ def _write_fingerprints(cache: Path, memo: dict) -> None:
         tmp.write_text(json.dumps(memo))
 
 
+def write_when_checked(path: Path, text: str) -> None:
+    """Write `path` (atomically) when the command's checks pass and its stages
+    are about to run (`flush_fingerprints`); dropped if they fail."""
+    _DEFERRED[Path(path)] = text
+
+
 def flush_fingerprints(write: bool = True) -> None:
     """Write (or, `write=False`, drop) the fingerprint caches computed while
-    read-only: a preflight that passes keeps its hashing, one that fails leaves
-    the work dir as it was."""
-    pending = dict(_PENDING)
+    read-only and the files of `write_when_checked`: a preflight that passes keeps
+    its hashing, one that fails leaves the work dir as it was."""
+    pending, deferred = dict(_PENDING), dict(_DEFERRED)
     _PENDING.clear()
+    _DEFERRED.clear()
     if write:
         for cache, memo in pending.items():
             _write_fingerprints(cache, memo)
+        for path, text in deferred.items():
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with atomic_file(path, keep_suffix=False) as tmp:
+                tmp.write_text(text)
+
+
+def file_sha256(path: Path) -> str:
+    """sha256 of one file's bytes, read in 1 MiB blocks."""
+    h = hashlib.sha256()
+    with Path(path).open("rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def fingerprint_files(files: Iterable[Path], root: Path, cache: Path | None) -> str:
@@ -104,11 +130,7 @@ def fingerprint_files(files: Iterable[Path], root: Path, cache: Path | None) -> 
         if hit and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
             digest = hit[2]
         else:
-            h = hashlib.sha256()
-            with path.open("rb") as fh:
-                for block in iter(lambda: fh.read(1 << 20), b""):
-                    h.update(block)
-            digest = h.hexdigest()
+            digest = file_sha256(path)
             memo[str(path)] = [st.st_size, st.st_mtime_ns, digest]
             changed = True
         records.append(f"{rel}:{digest}")
@@ -121,3 +143,60 @@ def fingerprint_files(files: Iterable[Path], root: Path, cache: Path | None) -> 
             _write_fingerprints(cache, memo)
             _PENDING.pop(cache, None)
     return hashlib.sha256("\n".join(records).encode()).hexdigest()
+
+
+# Config fields that name a local model file or folder, per config section: their
+# content enters the stage's key (`model_file_deps`), not only their path. A new
+# field naming a checkpoint, tokenizer or model folder belongs here
+# (tests/test_checkpoint_key.py checks the names exist and finds undeclared ones).
+MODEL_FILES: dict[str, tuple[str, ...]] = {
+    "extract-features": (
+        "sam_checkpoint",
+        "clip_checkpoint",
+        "clip_tokenizer",
+        "import_dir",  # a LangSplat feature folder
+    ),
+    "query": ("clip_checkpoint",),
+    "reconstruct": ("import_dir",),  # a released WE-GS model
+    "sfm": ("vocab_tree",),
+}
+
+MODEL_DIGESTS = ".model-digests.json"  # under the work dir: one cache for every scene
+
+
+def model_file_digest(path: str | Path, cache: Path | None) -> str:
+    """sha256 of a model file's content (a folder: of its files' relative paths and
+    contents), cached by (absolute path, size, mtime_ns) in `cache`; "missing" or
+    "unreadable" instead of an error (the preflight checks say what is wrong).
+
+    A file touched without a change is read once more (its mtime moved) and gives
+    the same digest; size alone cannot tell a fine-tuned model from its original.
+    """
+    p = Path(path).expanduser()
+    try:
+        if p.is_dir():
+            files = [f for f in p.rglob("*") if f.is_file()]
+            return fingerprint_files(files, p, cache)
+        if p.is_file():
+            return fingerprint_files([p], p.parent, cache)
+    except OSError:
+        return "unreadable"
+    return "missing"
+
+
+def model_file_deps(section: str, config: Any, work_dir: Path) -> dict[str, str]:
+    """{"file:<field>": digest} for the section's `MODEL_FILES` fields that are set.
+
+    An empty field adds nothing, so the keys of configs without model files are
+    what they were before digests entered keys.
+    """
+    out = {}
+    for name in MODEL_FILES.get(section, ()):
+        if isinstance(config, Mapping):
+            value = config.get(name, "")
+        else:
+            value = getattr(config, name, "")
+        if value:
+            cache = Path(work_dir) / MODEL_DIGESTS
+            out[f"file:{name}"] = model_file_digest(str(value), cache)
+    return out

@@ -105,12 +105,15 @@ def pose_photos(
 ) -> tuple[str, str, Path]:
     """(key, state, posed scene folder) of the `sfm` stage for a photo folder:
     run (cached, under its lock) if `run`, else only looked up (`ptovs status`)."""
+    from ptovs.keys import flush_fingerprints
     from ptovs.sfm import SfmConfig, posed_scene, sfm_location, sfm_state
 
+    ctx = ctx.for_scene(scene_name)
     config = build_config(SfmConfig, ctx.section(SFM), SFM)
     if not run:
         return sfm_state(photos, scene_name, ctx.work_dir, config)
     out = posed_scene(photos, scene_name, ctx.work_dir, config, force=force)
+    flush_fingerprints()  # SfM ran: the scene's config is recorded, as a stage's
     return sfm_location(photos, scene_name, ctx.work_dir, config)[1], "done", out
 
 
@@ -119,12 +122,14 @@ def resolve_scene(
     scene_name: str | None,
     data: Path | None,
     sets: Iterable[str] = (),
-    before_sfm: Callable[[], None] | None = None,
+    before_sfm: Callable[[RunContext], None] | None = None,
 ) -> SceneRef:
-    """The scene a command works on. A folder of unposed photos is posed first by
-    the `sfm` stage (cached); `before_sfm` runs first when SfM has still to run
-    (the command's preflight checks that need no scene)."""
+    """The scene a command works on, read with the scene's config (without
+    --config, the one recorded for it: `RunContext.for_scene`). A folder of unposed
+    photos is posed first by the `sfm` stage (cached); `before_sfm(ctx)` runs first
+    when SfM has still to run (the command's preflight checks that need no scene)."""
     scene_name, data, photos = scene_source(scene_name, data)
+    ctx = ctx.for_scene(scene_name)
     source = data  # what the user gave: advice names it, not the posed copy
     if photos is not None:  # unposed photos: SfM first (cached), then a COLMAP scene
         if before_sfm is not None:
@@ -133,7 +138,7 @@ def resolve_scene(
             with read_only():  # the state lookup writes no cache
                 state = pose_photos(ctx, scene_name, photos, run=False)[1]
             if state != "done":
-                before_sfm()
+                before_sfm(ctx)
         data = pose_photos(ctx, scene_name, photos, run=True)[2]
     section = ctx.section("scene", sets)
     config = build_config(SceneConfig, section, "scene")

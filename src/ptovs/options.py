@@ -131,13 +131,13 @@ def variant_chain(
     extract = "extract-features"
     needs = last in PIPELINE and PIPELINE.index(last) >= PIPELINE.index(extract)
 
-    def before_sfm() -> None:  # what the features will need, before SfM's minutes
-        if needs:
+    def before_sfm(scene_ctx: RunContext) -> None:  # before SfM's minutes
+        if needs:  # what the features will need
             from ptovs.preflight import check_extract_config
 
-            section = ctx.section(extract, split.get(extract, ()))
+            section = scene_ctx.section(extract, split.get(extract, ()))
             check_extract_config(build_config(get_stage(extract).config_cls,
                                               section, extract))  # fmt: skip
 
     ref = resolve_scene(ctx, scene_name, data, split.pop(SCENE), before_sfm)
-    return Chain(ctx, ref, variant_sets(variant, split)), ref
+    return Chain(ctx.for_scene(ref.name), ref, variant_sets(variant, split)), ref

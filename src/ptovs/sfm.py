@@ -373,12 +373,14 @@ def _materialise(
 
 
 def _photos_key(
-    photos: list[Path], folder: Path, cache: Path, config: SfmConfig
+    photos: list[Path], folder: Path, work_dir: Path, scene: str, config: SfmConfig
 ) -> str:
-    from ptovs.keys import artifact_key, fingerprint_files
+    from ptovs.keys import artifact_key, fingerprint_files, model_file_deps
 
+    cache = Path(work_dir) / scene / ".fingerprints.json"
     digest = fingerprint_files(photos, folder, cache)  # cached by size and mtime
-    return artifact_key(NAME, VERSION, dataclasses.asdict(config), {"photos": digest})
+    inputs = {"photos": digest, **model_file_deps(NAME, config, work_dir)}
+    return artifact_key(NAME, VERSION, dataclasses.asdict(config), inputs)
 
 
 def sfm_location(
@@ -388,9 +390,7 @@ def sfm_location(
     `<work>/<scene>/sfm/<key12>/`) of a photo folder; nothing is read but the
     photos' fingerprints."""
     photos = list_photos(photo_folder)
-    key = _photos_key(
-        photos, photo_folder, Path(work_dir) / scene / ".fingerprints.json", config
-    )
+    key = _photos_key(photos, photo_folder, work_dir, scene, config)
     store = Store(work_dir)
     return photos, key, store, store.path(scene, NAME, key).with_suffix("")
 

@@ -25,7 +25,6 @@ import click
 
 from ptovs.artifacts import Artifact, write_atomic
 from ptovs.chain import Chain, RunContext, execute, run_stages
-from ptovs.config import merge
 from ptovs.locate import resolve_scene
 from ptovs.options import chain_options, variant_chain
 from ptovs.registry import REGISTRY, StageSpec
@@ -133,7 +132,7 @@ def stage_command(
         ctx = obj
         if extras.overrides is not None:
             over = extras.overrides(extra)
-            ctx = RunContext(obj.work_dir, merge(obj.config, {name: over}), obj.force)
+            ctx = obj.with_overrides({name: over})  # also over a recorded config
         redo = {name, *extras.force_also} if force else set()
         arts: dict[str, Artifact] = {}
         try:

@@ -32,7 +32,7 @@ def command(
     sets: tuple[str, ...],
     force: bool,
 ) -> None:
-    from ptovs.config import merge, parse_sets
+    from ptovs.config import parse_sets
     from ptovs.options import split_sets
 
     name, folder, photos = scene_source(scene_name, data)
@@ -42,6 +42,6 @@ def command(
             "no photos: sfm takes a folder of unposed photos (DIR/images/* or DIR/*)"
         )
     items = split_sets(sets, (SFM,), default=SFM)[SFM]
-    ctx = RunContext(obj.work_dir, merge(obj.config, parse_sets(items, SFM)), obj.force)
+    ctx = obj.for_scene(name).with_overrides(parse_sets(items, SFM))
     key, state, out = pose_photos(ctx, name, photos, run=True, force=force or obj.force)
     click.echo(f"{SFM}: {out} (key {key[:12]}, {state})")
