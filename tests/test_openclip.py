@@ -642,6 +642,43 @@ def test_preflight_runs_a_crop_and_a_phrase(tmp_path, monkeypatch):
         check_openclip(name, ckpt, pretrained="openai")
 
 
+def test_preflight_refuses_an_ambiguous_model_and_runs_the_precision_used(
+    tmp_path, monkeypatch
+):
+    """Before any stage: a model whose tags disagree on QuickGELU, with no tag,
+    is refused in one line; the test crop runs in bf16 where bf16 will (or, with
+    "auto", may) be used, so a model that fails only in bf16 fails here."""
+    from ptovs import preflight
+    from ptovs.encoders import openclip
+    from ptovs.errors import InputError
+
+    some = tmp_path / "any.pt"
+    some.write_bytes(b"")
+    with pytest.raises(InputError) as e:
+        preflight.check_openclip("ViT-B-16", some)
+    msg = str(e.value)
+    assert "ViT-B-16-quickgelu" in msg and "clip_pretrained" in msg and "\n" not in msg
+    name = openclip.register_tiny()
+    ckpt = tmp_path / "tiny.pt"
+    torch.save(openclip.build_net(name, None).state_dict(), ckpt)
+
+    def broken():
+        raise RuntimeError("bf16 kernel missing")
+
+    monkeypatch.setattr(openclip.OpenClipEncoder, "_fast_model", lambda self: broken())
+    preflight.check_openclip(name, ckpt, precision="fp32")
+    for fast in (False, True):
+        preflight._openclip_fits.cache_clear()
+        monkeypatch.setattr(openclip, "bf16_is_fast", lambda *a, f=fast: (f, {}))
+        if not fast:
+            preflight.check_openclip(name, ckpt, precision="auto")  # fp32 only
+            continue
+        with pytest.raises(InputError, match="bf16 kernel missing"):
+            preflight.check_openclip(name, ckpt, precision="auto")
+    with pytest.raises(InputError, match="could not encode a test crop"):
+        preflight.check_openclip(name, ckpt, precision="bf16")
+
+
 def test_openclip_features_carry_through_train_and_query(
     extracted_work, tiny_scene_dir, tmp_path
 ):
