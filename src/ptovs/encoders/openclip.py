@@ -35,10 +35,11 @@ tag disagree). What is honoured, and what is refused in one line:
 
 Precision: "fp32" is fp32 on every device (no autocast) and texts are always
 fp32. "bf16" is upstream's `precision="pure_bf16"`: a bfloat16 copy of the model,
-its own `encode_image` on a bfloat16 input, normalised in fp32. "auto" asks `bf16_is_fast` (CPU
-capability and flags, a short matmul probe) and, only where bf16 can be faster,
-encodes a sample of the scene's own crops both ways (`check_precision`); bf16 is
-kept only where it agrees with fp32 within the bars below and was faster on it.
+its own `encode_image` on a bfloat16 input, normalised in fp32. "auto" asks
+`bf16_is_fast` (CPU capability and flags, a short matmul probe) and, only where
+bf16 can be faster, encodes a sample of the scene's own crops both ways
+(`check_precision`); bf16 is kept only where it agrees with fp32 within the bars
+below and was faster on it.
 """
 
 from __future__ import annotations
