@@ -228,8 +228,9 @@ def test_image_and_text_features_equal_upstream_for_gelu_and_quickgelu_tags(
                 torch.stack([pre(Image.fromarray(p)) for p in native]), normalize=True
             ).numpy()
             up_txt = net.encode_text(tok(texts), normalize=True).numpy()
-        for mine, ref in ((enc.encode_images(crops), _upstream_features(net, pre, crops)),
-                          (enc.encode_images(raw), _upstream_features(net, pre, raw)),
+        up_crops, up_raw = (_upstream_features(net, pre, c) for c in (crops, raw))
+        for mine, ref in ((enc.encode_images(crops), up_crops),
+                          (enc.encode_images(raw), up_raw),
                           (enc.encode_images(cut), up_cut),
                           (enc.encode_texts(texts), up_txt)):  # fmt: skip
             np.testing.assert_allclose(mine, ref, atol=TOL)
