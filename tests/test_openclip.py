@@ -110,14 +110,190 @@ def test_wrapper_features_equal_the_upstream_forward(which, tmp_path, monkeypatc
         assert np.allclose(np.linalg.norm(ours, axis=1), 1, atol=1e-5)
 
 
+TOL = 2e-5  # fp32 features of the same model and input, two code paths
+
+
+def _tiny_b32(monkeypatch) -> str:
+    """A 2-layer ViT-B-32-shaped config registered as upstream registers
+    ViT-B-32: a GELU name and a `-quickgelu` twin, with ViT-B-32's real
+    'laion2b_s34b_b79k' (GELU) and 'openai' (QuickGELU) tag entries."""
+    oc = _oc()
+    from ptovs.encoders.openclip import TINY_CONFIG
+
+    name = "ptovs-tiny-b32-test"
+    cfg = dict(TINY_CONFIG, vision_cfg=dict(TINY_CONFIG["vision_cfg"], width=96))
+    monkeypatch.setitem(oc.factory._MODEL_CONFIGS, name, cfg)
+    monkeypatch.setitem(
+        oc.factory._MODEL_CONFIGS, f"{name}-quickgelu", dict(cfg, quick_gelu=True)
+    )
+    real = oc.pretrained._PRETRAINED["ViT-B-32"]
+    tags = {t: dict(real[t]) for t in ("laion2b_s34b_b79k", "openai")}
+    monkeypatch.setitem(oc.pretrained._PRETRAINED, name, tags)
+    monkeypatch.setitem(
+        oc.pretrained._PRETRAINED, f"{name}-quickgelu", {"openai": dict(real["openai"])}
+    )
+    return name
+
+
+def _trained_like(net) -> None:
+    """Random init keeps MLP inputs near 0, where GELU and QuickGELU almost agree,
+    and MLP outputs small beside the residual stream; trained towers do neither.
+    Widen the MLPs so that the activation matters."""
+    with torch.no_grad():
+        for name, p in net.named_parameters():
+            if "mlp.c_fc.weight" in name:
+                p.mul_(1.5)
+            elif "mlp.c_proj.weight" in name:
+                p.mul_(10.0)
+
+
+def _native_square(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The segment's square-padded crop at native resolution (uint8), as
+    prepare_crop cuts it before resizing: what an upstream user would feed."""
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    img = image[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1].copy()
+    img[~mask[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]] = 0
+    h, w = img.shape[:2]
+    side = max(h, w)
+    pad = np.zeros((side, side, 3), np.uint8)
+    pad[
+        (side - h) // 2 : (side - h) // 2 + h, (side - w) // 2 : (side - w) // 2 + w
+    ] = img
+    return pad
+
+
+def _segments(seed: int = 0):
+    """Photos with a non-square segment each: one crop upsampled, one
+    downsampled (the model reads 224 px)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for h, w, (y0, y1, x0, x1) in ((97, 131, (20, 80, 10, 100)),
+                                   (420, 380, (30, 400, 40, 330))):  # fmt: skip
+        image = (rng.random((h, w, 3)) * 255).astype(np.uint8)
+        yy, xx = np.mgrid[:h, :w]
+        cy, cx, ry, rx = (y0 + y1) / 2, (x0 + x1) / 2, (y1 - y0) / 2, (x1 - x0) / 2
+        out.append((image, ((yy - cy) / ry) ** 2 + ((xx - cx) / rx) ** 2 <= 1))
+    return out
+
+
+def test_image_and_text_features_equal_upstream_for_gelu_and_quickgelu_tags(
+    tmp_path, monkeypatch
+):
+    """One checkpoint, two tags: our image and text features equal open_clip's
+    own `create_model_and_transforms(..., pretrained=tag)` (the tag's entry
+    pointed at the file; `-quickgelu` for the QuickGELU tag, as upstream names
+    it) + the tag's transform + `get_tokenizer`, within 2e-5, on crops at the
+    model's size, of another size, and cut from photos by `prepare_crop` with the
+    encoder's `resample`. Negative controls: the wrong activation or the wrong
+    mean/std move the same features by more than 100x the tolerance."""
+    import warnings
+
+    from PIL import Image
+
+    from ptovs.crop import prepare_crop
+    from ptovs.encoders.openclip import OpenClipEncoder, build_net
+
+    oc = _oc()
+    name = _tiny_b32(monkeypatch)
+    torch.manual_seed(0)
+    net0 = build_net(name, None)
+    _trained_like(net0)
+    ckpt = tmp_path / "model.pt"
+    torch.save(net0.state_dict(), ckpt)
+    for table in (oc.pretrained._PRETRAINED[name],
+                  oc.pretrained._PRETRAINED[f"{name}-quickgelu"]):  # fmt: skip
+        for entry in table.values():
+            entry["file"] = str(ckpt)
+    rng = np.random.default_rng(1)
+    crops = np.concatenate([_crops(2, 224), rng.random((2, 224, 224, 3))])
+    crops = (np.rint(crops * 255) / 255).astype(np.float32)
+    raw = rng.integers(0, 256, (2, 40, 40, 3), dtype=np.uint8)
+    texts = ["a column", "the sky over a dome", "a person on the stairs"]
+    ours, theirs = {}, {}
+    for tag, upstream in (("laion2b_s34b_b79k", name), ("openai", f"{name}-quickgelu")):
+        enc = OpenClipEncoder(name, ckpt, pretrained=tag, batch_size=3)
+        assert enc.pre.quick_gelu == (tag == "openai")
+        assert (enc.resample, enc.pre.resize_mode) == ("bicubic", "shortest")
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # no QuickGELU mismatch warning
+            net, _, pre = oc.create_model_and_transforms(upstream, pretrained=tag)
+        net.eval()
+        tok = oc.get_tokenizer(upstream)
+        cut = np.stack([prepare_crop(im, m, enc.size, resample=enc.resample)
+                        for im, m in _segments()])  # fmt: skip
+        native = [_native_square(im, m) for im, m in _segments()]
+        assert {p.shape[0] for p in native} == {91, 371}  # up- and downsampled
+        with torch.no_grad():
+            up_cut = net.encode_image(
+                torch.stack([pre(Image.fromarray(p)) for p in native]), normalize=True
+            ).numpy()
+            up_txt = net.encode_text(tok(texts), normalize=True).numpy()
+        up_crops, up_raw = (_upstream_features(net, pre, c) for c in (crops, raw))
+        for mine, ref in ((enc.encode_images(crops), up_crops),
+                          (enc.encode_images(raw), up_raw),
+                          (enc.encode_images(cut), up_cut),
+                          (enc.encode_texts(texts), up_txt)):  # fmt: skip
+            np.testing.assert_allclose(mine, ref, atol=TOL)
+        ours[tag] = (enc.encode_images(crops), enc.encode_texts(texts))
+        theirs[tag] = (net, pre)
+    # negative control 1: QuickGELU weights driven with GELU (the old bug)
+    net, pre = theirs["openai"]
+    right = _upstream_features(net, pre, crops)
+    with torch.no_grad():
+        right_txt = net.encode_text(oc.get_tokenizer(name)(texts), normalize=True)
+    wrong_img, wrong_txt = ours["laion2b_s34b_b79k"]
+    assert np.abs(wrong_img - right).max() > 100 * TOL
+    assert np.abs(wrong_txt - right_txt.numpy()).max() > 100 * TOL
+    # negative control 2: the right model fed MobileCLIP's mean 0 / std 1
+    x = torch.from_numpy(crops).permute(0, 3, 1, 2).float()
+    with torch.no_grad():
+        off = net.encode_image(x, normalize=True).numpy()
+    assert np.abs(off - right).max() > 100 * TOL
+    # upstream's own pitfall: the GELU name with the QuickGELU tag only warns
+    with pytest.warns(UserWarning, match="QuickGELU mismatch"):
+        oc.create_model_and_transforms(name, pretrained="openai")
+
+
+@pytest.mark.parametrize("interpolation", ["bilinear", "bicubic"])
+@pytest.mark.parametrize("mode", ["shortest", "squash", "longest"])
+def test_a_crop_resized_by_the_tag_equals_the_upstream_transform(interpolation, mode):
+    """prepare_crop(..., resample=tag's interpolation) + our batch normalisation
+    is open_clip's eval transform (any resize mode) of the square-padded crop at
+    native resolution, to the pixel; cv2's default resize is not."""
+    from dataclasses import replace
+
+    from PIL import Image
+
+    from ptovs.crop import prepare_crop
+    from ptovs.encoders.openclip import OpenClipEncoder, register_tiny
+
+    oc = _oc()
+    enc = OpenClipEncoder(register_tiny(), random_weights=True)
+    enc.pre = replace(enc.pre, interpolation=interpolation, resize_mode=mode)
+    cfg = oc.transform.PreprocessCfg(size=enc.size, mean=enc.pre.mean,
+                                     std=enc.pre.std, interpolation=interpolation,
+                                     resize_mode=mode)  # fmt: skip
+    tf = oc.transform.image_transform_v2(cfg, is_train=False)
+    off = []
+    for image, mask in _segments(2):
+        ref = tf(Image.fromarray(_native_square(image, mask)))[None]
+        ours = enc.preprocess(prepare_crop(image, mask, enc.size, interpolation)[None])
+        torch.testing.assert_close(ours, ref, atol=1e-6, rtol=0)
+        cv2_cut = enc.preprocess(prepare_crop(image, mask, enc.size)[None])
+        off.append(float((cv2_cut - ref).abs().mean()))
+    # the choice matters where crops shrink: cv2 samples, PIL averages (antialias)
+    assert off[1] > 0.1, off
+
+
 def test_preprocessing_follows_the_pretrained_tag():
     from ptovs.encoders.openclip import preprocess_for
 
     openai = (0.48145466, 0.4578275, 0.40821073)
-    assert preprocess_for("ViT-B-16").mean == openai  # all its tags agree
-    assert preprocess_for("ViT-B-32").size == 224
+    assert preprocess_for("ViT-B-16", "laion2b_s34b_b88k").mean == openai
+    assert preprocess_for("ViT-B-32", "laion2b_s34b_b79k").size == 224
     mc = preprocess_for("MobileCLIP2-S0")
     assert (mc.mean, mc.std, mc.interpolation) == ((0.0,) * 3, (1.0,) * 3, "bilinear")
+    assert not mc.quick_gelu
     assert preprocess_for("MobileCLIP2-S3").mean == openai  # S3/S4: OpenAI's
     sig = preprocess_for("ViT-B-16-SigLIP2")
     assert (sig.mean, sig.resize_mode) == ((0.5,) * 3, "squash")
@@ -128,6 +304,34 @@ def test_preprocessing_follows_the_pretrained_tag():
         preprocess_for("ViT-B-32", "dfndr2b")
     with pytest.raises(ValueError, match="not an OpenCLIP model"):
         preprocess_for("ViT-Q-99")
+    with pytest.raises(ValueError, match="hf-hub"):
+        preprocess_for("hf-hub:timm/ViT-B-16-SigLIP2")  # would download its config
+
+
+def test_quickgelu_follows_the_pretrained_tag():
+    """The activation is part of the tag: OpenAI's, DFN's and MetaCLIP's ViT-B-16
+    are QuickGELU, laion2b's is GELU, so ViT-B-16 without a tag is refused in one
+    line naming the tags and ViT-B-16-quickgelu. Tags are normalised as upstream's
+    `_clean_tag` (lower case, '-' to '_')."""
+    from ptovs.encoders.openclip import preprocess_for
+
+    for model, quick, gelu in (
+        ("ViT-B-16", ("openai", "dfn2b", "metaclip_400m"), ("laion2b_s34b_b88k",)),
+        ("ViT-B-32", ("openai", "laion400m_e32", "metaclip_fullcc"),
+         ("laion2b_s34b_b79k", "datacomp_xl_s13b_b90k")),
+    ):  # fmt: skip
+        assert all(preprocess_for(model, t).quick_gelu for t in quick), model
+        assert not any(preprocess_for(model, t).quick_gelu for t in gelu), model
+        with pytest.raises(ValueError) as e:
+            preprocess_for(model)
+        msg = str(e.value)
+        assert "\n" not in msg and f"{model}-quickgelu" in msg, msg
+        assert "QuickGELU: openai" in msg and "laion2b" in msg.split("GELU:")[-1]
+    assert preprocess_for("ViT-B-16", "OpenAI").tag == "openai"
+    assert preprocess_for("ViT-B-32", "Laion400M-E32").quick_gelu
+    assert preprocess_for("ViT-B-32-quickgelu").quick_gelu  # every tag agrees
+    assert preprocess_for("RN50").quick_gelu  # every tag: QuickGELU, config: not
+    assert not preprocess_for("ViT-B-16-SigLIP2").quick_gelu
 
 
 def test_a_checkpoint_loads_quietly_from_torch_or_safetensors(tmp_path, caplog):
@@ -162,8 +366,26 @@ def _outliers(enc, size: float = 1000.0) -> None:
     enc._fast = None
 
 
-def test_bf16_is_kept_only_where_it_agrees_with_fp32():
+def _bf16_allowed(monkeypatch, enc, fp32_s: float = 2.0, bf16_s: float = 1.0):
+    """Let the check run here whatever the CPU: bf16_is_fast says yes and the
+    timings say bf16 took `bf16_s` where fp32 took `fp32_s` (the features are
+    real)."""
+    from ptovs.encoders import openclip
+
+    monkeypatch.setattr(openclip, "bf16_is_fast", lambda *a, **k: (True, {"x": 1}))
+    real = enc._timed_encode
+
+    def timed(crops, precision):
+        return real(crops, precision)[0], fp32_s if precision == "fp32" else bf16_s
+
+    monkeypatch.setattr(enc, "_timed_encode", timed)
+
+
+def test_bf16_is_kept_only_where_it_agrees_with_fp32_and_is_faster(monkeypatch):
+    import json
+
     from ptovs.encoders.openclip import (
+        MAX_RELEVANCY_CHANGE,
         MIN_CENTRED_COSINE,
         OpenClipEncoder,
         register_tiny,
@@ -173,16 +395,206 @@ def test_bf16_is_kept_only_where_it_agrees_with_fp32():
     crops = _crops(24, 224)
     enc = OpenClipEncoder(register_tiny(), random_weights=True, precision="auto")
     assert enc.precision == "fp32"  # auto starts safe
+    _bf16_allowed(monkeypatch, enc)
     clean = enc.check_precision(crops)
-    assert clean["precision"] == "bf16", clean  # the plain model agrees
+    assert clean["precision"] == "bf16" and enc.precision == "bf16", clean
     assert clean["worst_centred_cosine"] >= MIN_CENTRED_COSINE
+    assert clean["worst_relevancy_change"] <= MAX_RELEVANCY_CHANGE
+    json.dumps(clean)  # stored with the features
+    # agrees but slower on the sample: fp32
+    _bf16_allowed(monkeypatch, enc, fp32_s=1.0, bf16_s=1.5)
+    slow = enc.check_precision(crops)
+    assert slow["precision"] == "fp32" and "slower" in slow["reason"], slow
+    assert "worst_centred_cosine" not in slow  # stopped after the short trial
+    _bf16_allowed(monkeypatch, enc)
     _outliers(enc)
     ref = enc._encode(crops[:4], "fp32")
     report = enc.check_precision(crops)
     assert report["precision"] == "fp32" and enc.precision == "fp32", report
     assert report["worst_centred_cosine"] < MIN_CENTRED_COSINE
+    assert report["reason"] == "bf16 disagrees with fp32"
     np.testing.assert_array_equal(enc.encode_images(crops[:4]), ref)  # fp32 path
-    assert set(report) >= {"crops", "bar", "top1_agreement", "checked"}
+    assert set(report) >= {"crops", "bar", "top1_agreement", "checked", "seconds"}
+
+
+def test_where_bf16_is_not_faster_nothing_runs_in_bf16(monkeypatch):
+    """bf16_is_fast says no (as on a CPU without bf16 instructions): fp32, and
+    not one crop goes through a bfloat16 model."""
+    import json
+
+    from ptovs.encoders import openclip
+
+    enc = openclip.OpenClipEncoder(
+        openclip.register_tiny(), random_weights=True, precision="auto"
+    )
+    evidence = {"capability": "AVX2", "bf16_flags": [], "probe": None}
+    monkeypatch.setattr(openclip, "bf16_is_fast", lambda *a, **k: (False, evidence))
+
+    def no_bf16():
+        raise AssertionError("a bf16 forward ran")
+
+    monkeypatch.setattr(enc, "_fast_model", no_bf16)
+    report = enc.check_precision(_crops(6, 224))
+    assert report["precision"] == "fp32" and enc.precision == "fp32"
+    assert report["reason"] == "bf16 not faster on this CPU"
+    assert report["bf16_probe"] == evidence and report["crops"] == 6
+    json.loads(json.dumps(report))
+    assert enc.encode_images(_crops(1, 224)).shape == (1, enc.dim)
+
+
+def test_bf16_is_fast_reads_the_cpu_before_timing_anything(monkeypatch):
+    """No bf16 instructions: False at once, no probe. With them: the matmul
+    probe decides (>= 1.3x). CUDA with bf16: True. The evidence is JSON."""
+    import json
+
+    from ptovs.encoders import openclip
+
+    def no_probe(width):
+        raise AssertionError("probe ran")
+
+    monkeypatch.setattr(openclip, "_matmul_probe", no_probe)
+    for flags in (set(), {"avx2", "fma"}, {"avx2", "avx512f", "avx512bw"}):
+        monkeypatch.setattr(openclip, "_cpu_flags", lambda f=flags: f)
+        fast, ev = openclip.bf16_is_fast("cpu", 512)
+        assert fast is False and ev["probe"] is None and ev["bf16_flags"] == []
+        assert ev["capability"] == str(torch.backends.cpu.get_cpu_capability())
+        json.dumps(ev)
+    monkeypatch.setattr(openclip, "_cpu_flags", lambda: {"avx512f", "avx512_bf16"})
+    for speedup, want in ((2.5, True), (1.1, False)):
+        monkeypatch.setattr(
+            openclip, "_matmul_probe",
+            lambda w, s=speedup: {"fp32_s": s * 0.01, "bf16_s": 0.01, "speedup": s},
+        )  # fmt: skip
+        fast, ev = openclip.bf16_is_fast("cpu", 512)
+        assert fast is want and ev["probe"]["width"] == 512, ev
+        assert ev["bf16_flags"] == ["avx512_bf16"]
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *a, **k: True)
+    assert openclip.bf16_is_fast("cuda")[0] is True
+    # the real probe on this machine: times in seconds, a ratio, nothing asserted
+    # about which is faster (that is the machine's business)
+    monkeypatch.undo()
+    out = openclip._matmul_probe(64)
+    assert out["fp32_s"] > 0 and out["bf16_s"] > 0 and out["speedup"] > 0
+
+
+def test_bf16_is_upstreams_pure_bf16_encode_image(tmp_path):
+    """precision "bf16" is open_clip's `precision="pure_bf16"` model's own
+    encode_image on a bf16 input, to the bit."""
+    from ptovs.encoders.openclip import OpenClipEncoder, build_net, register_tiny
+
+    oc = _oc()
+    name = register_tiny()
+    torch.manual_seed(0)
+    ckpt = tmp_path / "tiny.pt"
+    torch.save(build_net(name, None).state_dict(), ckpt)
+    enc = OpenClipEncoder(name, ckpt, precision="bf16")
+    up = oc.create_model(name, precision="pure_bf16")
+    oc.factory.load_checkpoint(up, str(ckpt))
+    crops = _crops(3, 224)
+    x = enc.preprocess(crops)
+    with torch.no_grad():  # normalised in fp32, as ours (bf16's 8 bits would round)
+        ref = up.eval().encode_image(x.to(torch.bfloat16)).float()
+    ref = torch.nn.functional.normalize(ref, dim=-1)
+    np.testing.assert_allclose(enc.encode_images(crops), ref.numpy(), atol=1e-6)
+    # texts stay fp32
+    fp32 = OpenClipEncoder(name, ckpt)
+    np.testing.assert_array_equal(enc.encode_texts(["a dome"]),
+                                  fp32.encode_texts(["a dome"]))  # fmt: skip
+
+
+def _tiny_coca(monkeypatch) -> str:
+    oc = _oc()
+    name = "ptovs-tiny-coca-test"
+    cfg = dict(
+        embed_dim=32,
+        multimodal_cfg=dict(context_length=16, width=32, heads=2, layers=1,
+                            attn_pooler_heads=2),
+        vision_cfg=dict(image_size=64, layers=1, width=32, patch_size=16,
+                        head_width=16, attentional_pool=True, attn_pooler_heads=2,
+                        output_tokens=True),
+        text_cfg=dict(context_length=16, vocab_size=49408, width=32, heads=2,
+                      layers=1, embed_cls=True, output_tokens=True),
+        custom_text=True,
+    )  # fmt: skip
+    monkeypatch.setitem(oc.factory._MODEL_CONFIGS, name, cfg)
+    return name
+
+
+def test_coca_models_work_in_both_precisions(tmp_path, monkeypatch):
+    """CoCa's visual tower returns (latent, tokens): its own encode_image is
+    used, in fp32 and bf16, and texts go through its encode_text."""
+    from ptovs.encoders.openclip import OpenClipEncoder, build_net
+
+    oc = _oc()
+    name = _tiny_coca(monkeypatch)
+    torch.manual_seed(0)
+    ckpt = tmp_path / "coca.pt"
+    torch.save(build_net(name, None).state_dict(), ckpt)
+    enc = OpenClipEncoder(name, ckpt, precision="bf16")
+    net, _, pre = oc.create_model_and_transforms(name, pretrained=str(ckpt))
+    crops = _crops(2, enc.size)
+    with torch.no_grad():
+        txt = net.eval().encode_text(oc.get_tokenizer(name)(["a dome"]))
+    enc.precision = "fp32"
+    np.testing.assert_allclose(
+        enc.encode_images(crops), _upstream_features(net, pre, crops), atol=TOL
+    )
+    np.testing.assert_allclose(enc.encode_texts(["a dome"]), txt.numpy(), atol=TOL)
+    enc.precision = "bf16"
+    low = enc.encode_images(crops)
+    assert low.shape == (2, enc.dim) and np.isfinite(low).all()
+
+
+def test_a_hugging_face_text_tower_never_downloads(tmp_path, monkeypatch):
+    """roberta-ViT-B-32's text tower is a Hugging Face model: without its local
+    folder, or without transformers, it is refused in one line, and at no point
+    is a download attempted (every download entry point raises here)."""
+    import importlib
+
+    from ptovs.encoders.openclip import OpenClipEncoder, build_net
+    from ptovs.errors import InputError
+    from ptovs.preflight import check_openclip
+
+    oc = _oc()
+
+    def download(*a, **k):
+        raise AssertionError(f"download attempted: {a}")
+
+    for mod, attr in ((oc.pretrained, "download_pretrained"),
+                      (oc.pretrained, "download_pretrained_from_hf"),
+                      (oc.pretrained, "download_pretrained_from_url"),
+                      (oc.factory, "_get_hf_config"),
+                      (oc.factory, "download_pretrained"),
+                      (oc.factory, "download_pretrained_from_hf")):  # fmt: skip
+        monkeypatch.setattr(mod, attr, download)
+    hub = importlib.import_module("huggingface_hub")
+    monkeypatch.setattr(hub, "hf_hub_download", download)
+    monkeypatch.setattr(hub, "snapshot_download", download)
+    model = "roberta-ViT-B-32"
+    ckpt = tmp_path / "model.pt"
+    ckpt.write_bytes(b"")
+    with pytest.raises(ValueError, match="clip_tokenizer") as e:
+        build_net(model, None)
+    assert "'roberta-base'" in str(e.value) and "\n" not in str(e.value)
+    with pytest.raises(InputError, match="clip_tokenizer") as e:
+        check_openclip(model, ckpt, pretrained="laion2b_s12b_b32k")
+    assert "\n" not in str(e.value)
+    folder = tmp_path / "roberta-base"
+    folder.mkdir()
+    with pytest.raises(FileNotFoundError, match="no config.json"):
+        build_net(model, None, hf_folder=folder)
+    (folder / "config.json").write_text(
+        '{"model_type": "roberta", "vocab_size": 100, "hidden_size": 32, '
+        '"num_hidden_layers": 1, "num_attention_heads": 2, '
+        '"intermediate_size": 64, "max_position_embeddings": 40}'
+    )
+    if oc.hf_model.transformers is None:
+        with pytest.raises(ValueError, match="pip install transformers"):
+            OpenClipEncoder(model, ckpt, tokenizer=folder)
+    else:  # built from the local config, random text weights, nothing fetched
+        net = build_net(model, None, quick_gelu=True, hf_folder=folder)
+        assert net.text.config.hidden_size == 32
 
 
 def test_extract_features_records_the_precision_it_kept(tiny_scene_dir, tmp_path):
@@ -229,6 +641,43 @@ def test_preflight_runs_a_crop_and_a_phrase(tmp_path, monkeypatch):
     assert "clip_tokenizer" in str(e.value) and "\n" not in str(e.value)
     with pytest.raises(InputError, match="not a tag of"):
         check_openclip(name, ckpt, pretrained="openai")
+
+
+def test_preflight_refuses_an_ambiguous_model_and_runs_the_precision_used(
+    tmp_path, monkeypatch
+):
+    """Before any stage: a model whose tags disagree on QuickGELU, with no tag,
+    is refused in one line; the test crop runs in bf16 where bf16 will (or, with
+    "auto", may) be used, so a model that fails only in bf16 fails here."""
+    from ptovs import preflight
+    from ptovs.encoders import openclip
+    from ptovs.errors import InputError
+
+    some = tmp_path / "any.pt"
+    some.write_bytes(b"")
+    with pytest.raises(InputError) as e:
+        preflight.check_openclip("ViT-B-16", some)
+    msg = str(e.value)
+    assert "ViT-B-16-quickgelu" in msg and "clip_pretrained" in msg and "\n" not in msg
+    name = openclip.register_tiny()
+    ckpt = tmp_path / "tiny.pt"
+    torch.save(openclip.build_net(name, None).state_dict(), ckpt)
+
+    def broken():
+        raise RuntimeError("bf16 kernel missing")
+
+    monkeypatch.setattr(openclip.OpenClipEncoder, "_fast_model", lambda self: broken())
+    preflight.check_openclip(name, ckpt, precision="fp32")
+    for fast in (False, True):
+        preflight._openclip_fits.cache_clear()
+        monkeypatch.setattr(openclip, "bf16_is_fast", lambda *a, f=fast: (f, {}))
+        if not fast:
+            preflight.check_openclip(name, ckpt, precision="auto")  # fp32 only
+            continue
+        with pytest.raises(InputError, match="bf16 kernel missing"):
+            preflight.check_openclip(name, ckpt, precision="auto")
+    with pytest.raises(InputError, match="could not encode a test crop"):
+        preflight.check_openclip(name, ckpt, precision="bf16")
 
 
 def test_openclip_features_carry_through_train_and_query(

@@ -48,28 +48,39 @@ def _state_mismatch(
 
 @functools.lru_cache(maxsize=8)
 def _openclip_fits(
-    model: str, path: str, size: int, mtime_ns: int, pretrained: str, tokenizer: str
+    model: str,
+    path: str,
+    size: int,
+    mtime_ns: int,
+    pretrained: str,
+    tokenizer: str,
+    precision: str,
+    device: str,
 ) -> None:
-    """Load the checkpoint the way the encoder will, compare it with the model's
-    tensors, names and shapes, then run one crop and one phrase through the
-    encoder built from it (cached by the file's size and time)."""
-    from ptovs.compat import import_backend
-    from ptovs.encoders.openclip import _state_dict, preprocess_for
+    """Refuse a model/tag the wrapper cannot drive exactly (tags that disagree on
+    preprocessing or QuickGELU, a Hugging Face tower with no local folder), load
+    the checkpoint the way the encoder will, compare it with the model's tensors,
+    names and shapes, then run one crop and one phrase through the encoder built
+    from it, in the precision it will use (cached by the file's size and time)."""
+    from ptovs.encoders.openclip import build_net, model_config, preprocess_for
 
-    oc = import_backend("open_clip")
-    if model not in oc.list_models():
-        raise InputError(
-            f"clip_model {model!r} is not an OpenCLIP model (e.g. ViT-B-32, "
-            "MobileCLIP2-S0, ViT-B-16; see docs/guide.md)"
-        )
     try:
-        preprocess_for(model, pretrained)
+        model_config(model)
+    except ValueError as exc:
+        raise InputError(f"{exc}; see docs/guide.md") from None
+    try:
+        pre = preprocess_for(model, pretrained)
     except ValueError as exc:
         raise InputError(f"{exc}: --set extract-features.clip_pretrained=TAG") from None
-    state = _read_state("clip_checkpoint", path, _state_dict)
-    from ptovs.encoders.openclip import build_net
+    try:
+        want = build_net(model, None, pre.quick_gelu, tokenizer).state_dict()
+    except (ValueError, FileNotFoundError) as exc:
+        raise InputError(
+            f"{exc}: --set extract-features.clip_tokenizer=FOLDER"
+        ) from None
+    from ptovs.encoders.openclip import _state_dict
 
-    want = build_net(model, None).state_dict()
+    state = _read_state("clip_checkpoint", path, _state_dict)
     missing, wrong, _ = _state_mismatch(state, want, extra=False)
     if missing or wrong:
         what = wrong[:2] or missing[:2]
@@ -79,22 +90,37 @@ def _openclip_fits(
             f"{model}'s checkpoint, or set clip_model to the checkpoint's model"
         )
     del want, state
-    _try_encoder(model, path, pretrained, tokenizer)
+    _try_encoder(model, path, pretrained, tokenizer, precision, device)
 
 
-def _try_encoder(model: str, path: str, pretrained: str, tokenizer: str) -> None:
-    """One crop and one phrase through the encoder extract-features will build:
-    a model the wrapper cannot drive fails here, in one line."""
+def _try_encoder(
+    model: str,
+    path: str,
+    pretrained: str,
+    tokenizer: str,
+    precision: str = "fp32",
+    device: str = "cpu",
+) -> None:
+    """One crop and one phrase through the encoder extract-features will build,
+    the crop also in bf16 where bf16 will or may be used ("bf16"; "auto" where
+    `bf16_is_fast` lets the check run): a model the wrapper cannot drive fails
+    here, in one line."""
     import numpy as np
 
-    from ptovs.encoders.openclip import OpenClipEncoder
+    from ptovs.encoders.openclip import OpenClipEncoder, bf16_is_fast
 
     try:
         enc = OpenClipEncoder(
-            model, path, pretrained=pretrained, tokenizer=tokenizer, batch_size=1
-        )
+            model, path, pretrained=pretrained, tokenizer=tokenizer, batch_size=1,
+            device=device,
+        )  # fmt: skip
         crop = np.full((1, enc.size, enc.size, 3), 0.5, np.float32)
-        img = enc.encode_images(crop)
+        runs = ["fp32"]
+        if precision == "bf16" or (
+            precision == "auto" and bf16_is_fast(enc.device, enc.width)[0]
+        ):
+            runs.append("bf16")
+        imgs = [enc._encode(crop, p) for p in runs]
         txt = enc.encode_texts(["a photo of a building"])
     except Exception as exc:  # noqa: BLE001 - whatever it is, it would fail hours in
         first = (str(exc).splitlines() or [""])[0][:200]
@@ -102,16 +128,17 @@ def _try_encoder(model: str, path: str, pretrained: str, tokenizer: str) -> None
             f"clip_model {model} with clip_checkpoint {path} could not encode a "
             f"test crop and phrase ({type(exc).__name__}: {first})"
         ) from None
-    if img.shape != (1, enc.dim) or txt.shape != (1, enc.dim):
-        raise InputError(
-            f"clip_model {model}: a test crop and phrase gave features "
-            f"{img.shape} and {txt.shape}, not [1, {enc.dim}]"
-        )
-    if not (np.isfinite(img).all() and np.isfinite(txt).all()):
-        raise InputError(
-            f"clip_checkpoint {path}: {model} gives non-finite features for a "
-            "test crop or phrase (a damaged checkpoint?)"
-        )
+    for img in imgs:
+        if img.shape != (1, enc.dim) or txt.shape != (1, enc.dim):
+            raise InputError(
+                f"clip_model {model}: a test crop and phrase gave features "
+                f"{img.shape} and {txt.shape}, not [1, {enc.dim}]"
+            )
+        if not (np.isfinite(img).all() and np.isfinite(txt).all()):
+            raise InputError(
+                f"clip_checkpoint {path}: {model} gives non-finite features for a "
+                "test crop or phrase (a damaged checkpoint?)"
+            )
 
 
 @functools.lru_cache(maxsize=4)
@@ -147,10 +174,16 @@ def _sam2_fits(model: str, path: str, size: int, mtime_ns: int) -> None:
 
 
 def check_openclip(
-    model: str, checkpoint: str | Path, pretrained: str = "", tokenizer: str = ""
+    model: str,
+    checkpoint: str | Path,
+    pretrained: str = "",
+    tokenizer: str = "",
+    precision: str = "fp32",
+    device: str = "cpu",
 ) -> None:
-    """The OpenCLIP checkpoint exists, loads, fits `model` and encodes a crop
-    and a phrase."""
+    """The model/tag can be driven exactly, and the OpenCLIP checkpoint exists,
+    loads, fits `model` and encodes a crop and a phrase (the crop in every
+    precision `precision` may use)."""
     if not str(checkpoint):
         raise InputError(
             "encoder = 'openclip' needs clip_checkpoint = a local OpenCLIP state dict "
@@ -165,8 +198,9 @@ def check_openclip(
         )
     st = path.stat()
     _openclip_fits(
-        model, str(path), st.st_size, st.st_mtime_ns, pretrained, str(tokenizer)
-    )
+        model, str(path), st.st_size, st.st_mtime_ns, pretrained, str(tokenizer),
+        precision, str(device),
+    )  # fmt: skip
 
 
 def _encoder(config: Any, synthetic: bool) -> str:
@@ -192,6 +226,8 @@ def check_extract_config(config: Any, synthetic: bool = False) -> None:
             config.clip_checkpoint,
             getattr(config, "clip_pretrained", ""),
             getattr(config, "clip_tokenizer", ""),
+            getattr(config, "precision", "fp32"),
+            getattr(config, "device", "cpu"),
         )
     if config.segmenter in ("sam", "sam2"):
         check_sam_checkpoint(config)

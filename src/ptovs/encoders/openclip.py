@@ -1,22 +1,45 @@
 """OpenCLIP as the image/text encoder (extra `[clip]`; docs/guide.md).
 
-Any open_clip model name works, with its weights from a local checkpoint file
-(`clip_checkpoint`, loaded with `weights_only=True`; nothing is downloaded). The
-image side is fed the way the trained model expects: its pretrained tag's
-preprocessing (mean, std, resize mode and interpolation: OpenAI's statistics for
-CLIP, mean 0 / std 1 for MobileCLIP, 0.5 / 0.5 for SigLIP), at its own input
-size. Models whose towers train with re-parameterisable branches (MobileCLIP's
-FastViT) are folded for inference with timm's `reparameterize_model`.
+Any built-in open_clip model name works, with its weights from a local checkpoint
+file (`clip_checkpoint`); nothing is downloaded. The features are those upstream
+open_clip 3.3 computes with the same file, model and pretrained tag, that is
+`create_model_and_transforms(model, pretrained=tag)` with the tag's table entry
+pointed at the file, and with QuickGELU where the tag was trained with it (the
+`<model>-quickgelu` name; upstream itself only warns when the activation and the
+tag disagree). What is honoured, and what is refused in one line:
 
-Crops arrive as LangSplat prepares them (masked, bbox crop, square pad, RGB in
-[0, 1]). A crop already at the model's input size needs no resizing (the
-upstream transform would be the identity on it) and is normalised as a batch; a
-crop of any other size goes through open_clip's own transform.
+- The tag (`clip_pretrained`, normalised as upstream: lower case, '-' → '_')
+  decides the preprocessing (mean, std, interpolation, resize mode, input size)
+  and the activation (`quick_gelu`: OpenAI's, DFN's and MetaCLIP's ViT-B-16 and
+  ViT-B-32, laion400m's ViT-B-32, ...). Without a tag, the model's tags must agree
+  on both; where they do not (ViT-B-16: openai is QuickGELU, laion2b is not) the
+  encoder refuses, naming the tags, the setting and `<model>-quickgelu`.
+- The checkpoint loads through upstream's `load_checkpoint` (its key
+  conversions), read with `weights_only=True`; a tensor missing or left over is
+  refused (upstream loads strictly).
+- Crops at the model's input size are normalised as a batch (the upstream
+  transform is the identity on them up to ToTensor + Normalize); a crop of any
+  other size goes through open_clip's own eval transform. Square crops resized
+  by `prepare_crop(..., resample=encoder.resample)` (PIL, the tag's
+  interpolation) equal the upstream transform of the square-padded crop at its
+  native resolution: for a square image every resize mode (shortest, squash,
+  longest) is that one PIL resize.
+- Re-parameterisable towers (MobileCLIP's FastViT) are folded for inference with
+  timm's `reparameterize_model` (upstream's outputs, up to float rounding).
+- CoCa models work: encode_image / encode_text are the model's own.
+- A Hugging Face text tower (`text_cfg.hf_model_name`: roberta, xlm-roberta, mT5,
+  NLLB) is built from its config in the local folder `clip_tokenizer` (config.json
+  and tokenizer files of that HF model; its weights come from the checkpoint),
+  never from the hub; without that folder, or without transformers, the encoder
+  refuses. Names with an `hf-hub:` or `local-dir:` schema are refused.
 
-Precision: "fp32" (the reference), "bf16" (a bfloat16 copy of the image tower,
-several times faster on CPUs with AVX-512 BF16 or AMX) or "auto": extract-features
-encodes a sample of the scene's own crops both ways and keeps bf16 only if it
-agrees with fp32 (`check_precision`). Texts are always encoded in fp32.
+Precision: "fp32" is fp32 on every device (no autocast) and texts are always
+fp32. "bf16" is upstream's `precision="pure_bf16"`: a bfloat16 copy of the model,
+its own `encode_image` on a bfloat16 input, normalised in fp32. "auto" asks
+`bf16_is_fast` (CPU capability and flags, a short matmul probe) and, only where
+bf16 can be faster, encodes a sample of the scene's own crops both ways
+(`check_precision`); bf16 is kept only where it agrees with fp32 within the bars
+below and was faster on it.
 """
 
 from __future__ import annotations
@@ -24,6 +47,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import logging
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,15 +60,35 @@ from ptovs.compat import import_backend
 log = logging.getLogger(__name__)
 
 PRECISIONS = ("fp32", "bf16", "auto")
+RESAMPLES = ("bilinear", "bicubic")
 TINY = "ptovs-tiny-test"
 TINY_CONFIG = dict(
     embed_dim=64,
     vision_cfg=dict(image_size=224, layers=2, width=64, patch_size=32, head_width=32),
     text_cfg=dict(context_length=77, vocab_size=49408, width=64, heads=2, layers=2),
 )
-# The bar a reduced-precision image tower must clear on the scene's own crops.
+# The bars a reduced-precision image tower must clear on the scene's own crops.
+# A relevancy score is min_j sigmoid(τ(p − n_j)), p and n_j a feature's cosines
+# with the query q and canonical phrase t_j (ptovs.field.relevancy), so a feature
+# error δ moves it by at most (τ/4)·|δ·(q − t_j)| ≤ (τ/4)·‖δ‖·‖q − t_j‖. The
+# centred cosine c bounds ‖δ‖ ≈ ‖f − μ‖·sqrt(2(1 − c)) only relative to the
+# sample's spread ‖f − μ‖ (a tight sample of one facade scores low for the same
+# δ), and c = 0.995 alone would allow |Δr| up to 0.25·‖f − μ‖·‖q − t‖ ≈ 0.1 with
+# the error along q − t: so c is a floor against gross failure, and the bar that
+# bounds the maps is MAX_RELEVANCY_CHANGE, measured directly on the sample with
+# the 24 check phrases as queries against the canonical phrases. 0.01 moves a
+# relative-threshold mask's normalised score by at most 2·0.01/R (R the map's
+# range, ≥ 0.3 where it holds an object): ≤ 0.07 on the 0.7 cut, worst case.
 MIN_CENTRED_COSINE = 0.995
 MIN_TOP1_AGREEMENT = 0.98
+MAX_RELEVANCY_CHANGE = 0.01
+RELEVANCY_TEMPERATURE = 10.0  # τ of ptovs.field.relevancy.relevancy
+# ptovs.field.relevancy.CANONICAL (copied: encoders sit below field)
+CANONICAL = ("object", "things", "scene", "sky", "building")
+# bf16 must beat fp32 by this factor on the probe before any model runs in it
+MIN_PROBE_SPEEDUP = 1.3
+# x86: AVX-512 BF16 or AMX instructions; aarch64: the BF16 extension
+BF16_FLAGS = ("avx512_bf16", "amx_bf16", "bf16")
 # Phrases for the top-1 agreement check (any fixed list of things in landmark photos).
 CHECK_PHRASES = (
     "column", "arch", "statue", "window", "door", "roof", "dome", "tower",
@@ -78,7 +122,8 @@ def _quiet_open_clip():
 
 @dataclass(frozen=True)
 class Preprocess:
-    """What the trained model expects of an image (open_clip's per-tag config)."""
+    """What the trained model expects (open_clip's per-tag config): the image's
+    preprocessing and the activation it was trained with."""
 
     size: int
     mean: tuple[float, float, float]
@@ -86,12 +131,24 @@ class Preprocess:
     interpolation: str
     resize_mode: str
     tag: str  # the pretrained tag it came from ("" = open_clip's defaults)
+    quick_gelu: bool = False  # QuickGELU, as the tag (or model config) says
+
+
+def clean_tag(tag: str) -> str:
+    """A pretrained tag as open_clip looks it up (`pretrained._clean_tag`)."""
+    return str(tag).lower().replace("-", "_")
 
 
 def model_config(model: str) -> dict:
-    """open_clip's config of `model`, or ValueError naming the choices."""
+    """open_clip's built-in config of `model`, or ValueError naming the choices."""
     oc = import_backend("open_clip")
-    cfg = oc.get_model_config(model)
+    if ":" in str(model):
+        raise ValueError(
+            f"clip_model {model!r}: give a built-in OpenCLIP name (e.g. ViT-B-16) "
+            "and the weights as clip_checkpoint; hf-hub:/local-dir: names would "
+            "read or download the model's config, and are not supported"
+        )
+    cfg = oc.get_model_config(model) if model in oc.list_models() else None
     if cfg is None:
         raise ValueError(
             f"clip_model {model!r} is not an OpenCLIP model (e.g. ViT-B-32, "
@@ -100,13 +157,23 @@ def model_config(model: str) -> dict:
     return cfg
 
 
-def preprocess_for(model: str, tag: str = "") -> Preprocess:
-    """The preprocessing of `model`'s pretrained tag `tag`.
+def _quick_name(model: str) -> str:
+    """`<model>-quickgelu` where open_clip has it, for the refusal's fix."""
+    oc = import_backend("open_clip")
+    name = f"{model}-quickgelu"
+    return f" (or clip_model = {name})" if name in oc.list_models() else ""
 
-    Without a tag: the tags' shared preprocessing when every tag of the model
-    agrees (ViT-B-16's openai, laion2b_*, datacomp_* ... all use OpenAI's
-    statistics), open_clip's defaults for a model with no tags, and a ValueError
-    naming the tags when they disagree."""
+
+def preprocess_for(model: str, tag: str = "") -> Preprocess:
+    """The preprocessing and activation of `model`'s pretrained tag `tag`.
+
+    Without a tag: what every tag of the model agrees on (MobileCLIP2-S0's one
+    tag, ViT-B-32-quickgelu's tags, ...), open_clip's defaults for a model with
+    no tags, and a ValueError naming the tags when they preprocess differently
+    or disagree on QuickGELU (ViT-B-16: openai and dfn2b are QuickGELU,
+    laion2b_s34b_b88k is not). The activation is QuickGELU where the model's
+    config or the tag says so (as `force_quick_gelu`: upstream never turns a
+    config's QuickGELU off)."""
     oc = import_backend("open_clip")
     cfg = model_config(model)
     vision = cfg.get("vision_cfg", {})
@@ -115,6 +182,7 @@ def preprocess_for(model: str, tag: str = "") -> Preprocess:
     keys = ("mean", "std", "interpolation", "resize_mode")
     default = oc.transform.PreprocessCfg()
     tags = oc.list_pretrained_tags_by_model(model)
+    tag = clean_tag(tag) if tag else ""
     if tag:
         if tag not in tags:
             raise ValueError(
@@ -124,12 +192,17 @@ def preprocess_for(model: str, tag: str = "") -> Preprocess:
         chosen = [tag]
     else:
         chosen = tags
-    found = {
-        tuple(tuple(v) if isinstance(v, list) else v for v in
-              (oc.get_pretrained_cfg(model, t).get(k, getattr(default, k))
-               for k in keys))
-        for t in chosen
-    }  # fmt: skip
+    model_quick = bool(cfg.get("quick_gelu", False))
+
+    def recipe(t: str) -> tuple:
+        pc = oc.get_pretrained_cfg(model, t)
+        values = (pc.get(k, getattr(default, k)) for k in keys)
+        return tuple(tuple(v) if isinstance(v, list) else v for v in values)
+
+    def quick(t: str) -> bool:
+        return model_quick or bool(oc.get_pretrained_cfg(model, t).get("quick_gelu"))
+
+    found = {recipe(t) for t in chosen}
     if not found:
         values = tuple(getattr(default, k) for k in keys)
     elif len(found) == 1:
@@ -139,10 +212,20 @@ def preprocess_for(model: str, tag: str = "") -> Preprocess:
             f"{model}'s pretrained tags preprocess differently ({', '.join(tags)}); "
             "set clip_pretrained to the tag of your checkpoint"
         )
+    acts = {t: quick(t) for t in chosen}
+    if len(set(acts.values())) > 1:
+        q = ", ".join(t for t, v in acts.items() if v)
+        g = ", ".join(t for t, v in acts.items() if not v)
+        raise ValueError(
+            f"{model}'s pretrained tags were trained with different activations "
+            f"(QuickGELU: {q}; GELU: {g}); set clip_pretrained to the tag of your "
+            f"checkpoint{_quick_name(model)}"
+        )
+    quick_gelu = next(iter(acts.values())) if acts else model_quick
     mean, std, interp, mode = values
     return Preprocess(
         size, tuple(map(float, mean)), tuple(map(float, std)), interp, mode,
-        tag or (chosen[0] if len(chosen) == 1 else ""),
+        tag or (chosen[0] if len(chosen) == 1 else ""), bool(quick_gelu),
     )  # fmt: skip
 
 
@@ -162,30 +245,89 @@ def _state_dict(path: Path) -> dict[str, torch.Tensor]:
     return {k.removeprefix("module."): v for k, v in obj.items()}
 
 
-def build_net(model: str, checkpoint: str | Path | None) -> Any:
-    """open_clip's `model` with the checkpoint's weights (None: random, tests)."""
+def hf_text_tower(model: str) -> str:
+    """The Hugging Face model of `model`'s text tower ("" for open_clip's own)."""
+    return str(model_config(model).get("text_cfg", {}).get("hf_model_name") or "")
+
+
+def _hf_text_cfg(model: str, folder: str | Path) -> dict:
+    """`model`'s text_cfg with its Hugging Face tower read from the local `folder`
+    (config.json) and never from the hub; ValueError in one line otherwise."""
+    oc = import_backend("open_clip")
+    hf = hf_text_tower(model)
+    if not str(folder):
+        raise ValueError(
+            f"{model}'s text tower is the Hugging Face model {hf!r}, whose config "
+            "would be downloaded; give its local folder (config.json and tokenizer "
+            "files) as clip_tokenizer, and install transformers"
+        )
+    path = Path(folder).expanduser()
+    if not (path / "config.json").is_file():
+        raise FileNotFoundError(
+            f"clip_tokenizer {path} holds no config.json; {model}'s text tower "
+            f"needs the local folder of the Hugging Face model {hf!r}"
+        )
+    if oc.hf_model.transformers is None:
+        raise ValueError(
+            f"{model}'s text tower is the Hugging Face model {hf!r}: "
+            "pip install transformers"
+        )
+    text = copy.deepcopy(model_config(model)["text_cfg"])
+    text.update(hf_model_name=str(path), hf_model_pretrained=False)
+    return text
+
+
+def build_net(
+    model: str,
+    checkpoint: str | Path | None,
+    quick_gelu: bool = False,
+    hf_folder: str | Path = "",
+) -> Any:
+    """open_clip's `model` with the checkpoint's weights (None: random, tests).
+
+    Args:
+        model: a built-in open_clip model name.
+        checkpoint: local state dict (torch or .safetensors), loaded through
+            upstream's `load_checkpoint`; every tensor must fit.
+        quick_gelu: build with QuickGELU (`force_quick_gelu`), as the tag says.
+        hf_folder: local folder of a Hugging Face text tower's config (models
+            with `text_cfg.hf_model_name` only).
+
+    Returns:
+        The model in eval mode, on the CPU, in fp32.
+    """
     oc = import_backend("open_clip")
     model_config(model)
+    kwargs: dict[str, Any] = {}
+    if hf_text_tower(model):
+        kwargs["text_cfg"] = _hf_text_cfg(model, hf_folder)
     with _quiet_open_clip():
-        net = oc.create_model(model, pretrained=None)
-    if checkpoint is not None:
-        path = Path(checkpoint)
-        if not str(checkpoint):
-            raise ValueError(
-                "encoder = 'openclip' needs clip_checkpoint = a local OpenCLIP "
-                "state dict (e.g. MobileCLIP2-S0 dfndr2b, ViT-B-16 "
-                "laion2b_s34b_b88k); nothing is downloaded"
-            )
-        if not path.is_file():
-            raise FileNotFoundError(f"clip_checkpoint {path} does not exist")
-        missing, unexpected = net.load_state_dict(_state_dict(path), strict=False)
-        if missing:
-            raise ValueError(
-                f"clip_checkpoint {path} does not fit {model}: missing "
-                f"{missing[:3]}{'...' if len(missing) > 3 else ''}"
-            )
-        if unexpected:
-            log.warning("clip_checkpoint: %d unused tensors", len(unexpected))
+        # pretrained_text / pretrained_image False: no tower weights fetched
+        net = oc.create_model(
+            model, pretrained=None, force_quick_gelu=quick_gelu,
+            pretrained_image=False, pretrained_text=False, **kwargs,
+        )  # fmt: skip
+    if checkpoint is None:
+        return net.eval()
+    path = Path(checkpoint)
+    if not str(checkpoint):
+        raise ValueError(
+            "encoder = 'openclip' needs clip_checkpoint = a local OpenCLIP "
+            "state dict (e.g. MobileCLIP2-S0 dfndr2b, ViT-B-16 "
+            "laion2b_s34b_b88k); nothing is downloaded"
+        )
+    if not path.is_file():
+        raise FileNotFoundError(f"clip_checkpoint {path} does not exist")
+    # upstream's loader: its key conversions, then a load we check ourselves
+    keys = oc.factory.load_checkpoint(net, str(path), strict=False, weights_only=True)
+    missing, unexpected = list(keys.missing_keys), list(keys.unexpected_keys)
+    if missing or unexpected:
+        what = missing[:3] or unexpected[:3]
+        raise ValueError(
+            f"clip_checkpoint {path} does not fit {model}: {len(missing)} tensors "
+            f"missing, {len(unexpected)} left over (e.g. {what}); give {model}'s "
+            "checkpoint, or set clip_model to the checkpoint's model"
+        )
     return net.eval()
 
 
@@ -220,15 +362,98 @@ def _tokenizer(model: str, tokenizer: str | Path) -> Any:
     )
 
 
+# ------------------------------------------------------------------ bf16 or not
+
+
+def _cpu_flags() -> set[str]:
+    """The CPU's feature flags (/proc/cpuinfo's flags or Features; empty where
+    there is none)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return set()
+    flags: set[str] = set()
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        if key.strip() in ("flags", "Features"):
+            flags.update(value.split())
+    return flags
+
+
+def _matmul_probe(width: int) -> dict[str, float]:
+    """Best-of-3 seconds of a [256, width] x [width, 4·width] matmul (an MLP
+    layer of a tower that wide) in fp32 and in bf16."""
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(256, width, generator=g)
+    w = torch.randn(width, 4 * width, generator=g)
+    out = {}
+    for name, dtype in (("fp32_s", torch.float32), ("bf16_s", torch.bfloat16)):
+        a, b = x.to(dtype), w.to(dtype)
+        a @ b  # warm-up: the first call picks and builds the kernel
+        best = float("inf")
+        for _ in range(3):
+            t0 = time.perf_counter()
+            a @ b
+            best = min(best, time.perf_counter() - t0)
+        out[name] = best
+    out["speedup"] = out["fp32_s"] / max(out["bf16_s"], 1e-12)
+    return out
+
+
+def bf16_is_fast(device: str | torch.device, width: int = 768) -> tuple[bool, dict]:
+    """Whether bf16 can be faster than fp32 on `device`, decided in well under a
+    second (no model runs).
+
+    CUDA: bf16 supported → True. CPU: a candidate only where the CPU has bf16
+    instructions (flags avx512_bf16 or amx_bf16, aarch64's bf16); then a matmul
+    of the model's width must run at least MIN_PROBE_SPEEDUP× faster in bf16.
+    Plain AVX2 or AVX-512 CPUs emulate bf16 (14× slower measured on MobileCLIP2-S0's
+    image tower), so there no bf16 work is done at all.
+
+    Args:
+        device: "cpu", "cuda" or a torch.device.
+        width: the tower's width (the probe's matmul size).
+
+    Returns:
+        (fast, evidence): evidence is JSON-serialisable (capability, bf16 flags
+        found, probe times or None, the rule).
+    """
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        ok = bool(torch.cuda.is_available() and torch.cuda.is_bf16_supported())
+        return ok, {"device": "cuda", "bf16_supported": ok, "rule": "CUDA bf16"}
+    capability = str(torch.backends.cpu.get_cpu_capability())
+    found = sorted(_cpu_flags() & set(BF16_FLAGS))
+    evidence: dict[str, Any] = {
+        "device": dev.type,
+        "capability": capability,
+        "bf16_flags": found,
+        "probe": None,
+        "rule": f"bf16 CPU flags and a matmul >= {MIN_PROBE_SPEEDUP}x faster",
+    }
+    if dev.type != "cpu" or not found:
+        return False, evidence
+    probe = _matmul_probe(int(width))
+    evidence["probe"] = {"width": int(width), **probe}
+    return bool(probe["speedup"] >= MIN_PROBE_SPEEDUP), evidence
+
+
 def centred_agreement(
-    ref: np.ndarray, fast: np.ndarray, text: np.ndarray
+    ref: np.ndarray,
+    fast: np.ndarray,
+    text: np.ndarray,
+    canonical: np.ndarray | None = None,
 ) -> dict[str, float]:
     """How far reduced-precision image features `fast` stray from `ref` (fp32).
 
     worst_centred_cosine: the smallest cosine between a crop's two features after
     both have the sample's fp32 mean subtracted (CLIP features share a large
     common direction that makes raw cosines near 1 whatever the error);
-    top1_agreement: the share of crops whose best phrase among `text` is the same.
+    top1_agreement: the share of crops whose best phrase among `text` is the same;
+    worst_feature_distance: the largest ‖ref − fast‖ of a crop; with `canonical`
+    (phrase embeddings), worst_relevancy_change: the largest change of a crop's
+    relevancy score (field.relevancy: min over canonical phrases of
+    sigmoid(τ(p − n)), τ = 10) for each phrase of `text` as the query.
     """
     ref = np.asarray(ref, np.float64)
     fast = np.asarray(fast, np.float64)
@@ -239,11 +464,28 @@ def centred_agreement(
     cos = np.ones(len(ref))
     cos[ok] = (a[ok] * b[ok]).sum(1) / (na[ok] * nb[ok])
     cos[~ok] = np.where(np.abs(na - nb)[~ok] < 1e-6, 1.0, 0.0)
-    if not np.isfinite(fast).all():
+    finite = bool(np.isfinite(fast).all())
+    if not finite:
         cos[:] = -1.0
     t = np.asarray(text, np.float64)
     top = float(np.mean((ref @ t.T).argmax(1) == (fast @ t.T).argmax(1)))
-    return {"worst_centred_cosine": float(cos.min()), "top1_agreement": top}
+    out = {
+        "worst_centred_cosine": float(cos.min()),
+        "top1_agreement": top,
+        "worst_feature_distance": float(np.linalg.norm(ref - fast, axis=1).max())
+        if finite
+        else 2.0,
+    }
+    if canonical is not None:
+        c = np.asarray(canonical, np.float64)
+
+        def rel(f: np.ndarray) -> np.ndarray:  # [B, Q]
+            d = (f @ t.T)[:, :, None] - (f @ c.T)[:, None, :]
+            return (1.0 / (1.0 + np.exp(-RELEVANCY_TEMPERATURE * d))).min(-1)
+
+        change = np.abs(rel(ref) - rel(fast)).max() if finite else 1.0
+        out["worst_relevancy_change"] = float(change)
+    return out
 
 
 class OpenClipEncoder:
@@ -267,8 +509,10 @@ class OpenClipEncoder:
         batch_size: crops per forward pass.
         random_weights: build untrained (tests only).
         pretrained: the checkpoint's open_clip tag (e.g. "dfndr2b"), which
-            decides the preprocessing; needed only where a model's tags differ.
-        tokenizer: local folder of a Hugging Face tokenizer (SigLIP models only).
+            decides the preprocessing and QuickGELU; needed only where a
+            model's tags differ.
+        tokenizer: local folder of a Hugging Face tokenizer (SigLIP models), or
+            of a Hugging Face text tower's config and tokenizer (roberta, ...).
         precision: "fp32", "bf16" or "auto" (fp32 until `check_precision`
             clears bf16 on the scene's crops).
         """
@@ -276,14 +520,23 @@ class OpenClipEncoder:
             raise ValueError(f"precision {precision!r}: choose from {PRECISIONS}")
         self.model_name = model
         self.pre = preprocess_for(model, pretrained)
-        net = build_net(model, None if random_weights else checkpoint)
+        net = build_net(
+            model,
+            None if random_weights else checkpoint,
+            quick_gelu=self.pre.quick_gelu,
+            hf_folder=tokenizer,
+        )
         self.device = torch.device(device)
         self.net: Any = reparameterize(net).to(self.device).eval()
         self._tokenizer_path = tokenizer
         self._tok: Any = None
         self.batch_size = int(batch_size)
-        self.dim = int(model_config(model)["embed_dim"])
+        cfg = model_config(model)
+        self.dim = int(cfg["embed_dim"])
+        self.width = int(cfg.get("vision_cfg", {}).get("width", self.dim))
         self.size = self.pre.size  # the crop side the model reads
+        # how `prepare_crop` should resize crops to `size`: the tag's interpolation
+        self.resample = self.pre.interpolation
         self._mean = torch.tensor(self.pre.mean, device=self.device).view(1, 3, 1, 1)
         self._std = torch.tensor(self.pre.std, device=self.device).view(1, 3, 1, 1)
         self._transform: Any = None
@@ -313,6 +566,7 @@ class OpenClipEncoder:
                 raise ValueError("crops hold non-finite values")
             crops = np.clip(np.rint(crops * 255.0), 0, 255).astype(np.uint8)
         if crops.shape[1:3] == (self.size, self.size):
+            # upstream's ToTensor + Normalize, batched (its resize is the identity)
             x = torch.from_numpy(np.ascontiguousarray(crops)).to(self.device)
             x = x.permute(0, 3, 1, 2).to(torch.float32) / 255.0
             return (x - self._mean) / self._std
@@ -323,49 +577,91 @@ class OpenClipEncoder:
         return x.to(self.device)
 
     # ------------------------------------------------------------ precision
-    def _fast_tower(self) -> Any:
+    def _fast_model(self) -> Any:
+        """Upstream's precision "pure_bf16": the whole model in bfloat16."""
         if self._fast is None:
-            self._fast = copy.deepcopy(self.net.visual).to(torch.bfloat16).eval()
+            self._fast = copy.deepcopy(self.net).to(torch.bfloat16).eval()
         return self._fast
 
     @torch.inference_mode()
     def _forward(self, x: torch.Tensor, precision: str) -> torch.Tensor:
         if precision == "bf16":
-            f = self._fast_tower()(x.to(torch.bfloat16)).float()
-        elif self.device.type == "cuda":
-            with torch.autocast("cuda", dtype=torch.float16):
-                f = self.net.encode_image(x).float()
+            f = self._fast_model().encode_image(x.to(torch.bfloat16))
         else:
             f = self.net.encode_image(x)
         return torch.nn.functional.normalize(f.float(), dim=-1)
 
-    def check_precision(self, crops: np.ndarray) -> dict:
-        """Encode `crops` (a sample of the scene's own) in fp32 and bf16 and keep
-        bf16 only if the worst centred cosine is at least MIN_CENTRED_COSINE and
-        the phrases' top-1 agreement at least MIN_TOP1_AGREEMENT; otherwise fp32.
+    def _timed_encode(self, crops: np.ndarray, precision: str):
+        """(features, seconds) of encoding `crops` in `precision`."""
+        t0 = time.perf_counter()
+        out = self._encode(crops, precision)
+        return out, time.perf_counter() - t0
 
-        Returns the report stored with the features (precision kept, the two
-        figures, the bar, the sample size)."""
-        ref = self._encode(crops, "fp32")
-        fast = self._encode(crops, "bf16")
-        fig = centred_agreement(ref, fast, self.encode_texts(list(CHECK_PHRASES)))
-        ok = (
-            fig["worst_centred_cosine"] >= MIN_CENTRED_COSINE
-            and fig["top1_agreement"] >= MIN_TOP1_AGREEMENT
-        )
-        self.precision = "bf16" if ok else "fp32"
-        if not ok:
-            self._fast = None
-        return {
-            "precision": self.precision,
+    def check_precision(self, crops: np.ndarray) -> dict:
+        """Decide precision "auto" on `crops` (a sample of the scene's own).
+
+        1. `bf16_is_fast`: where bf16 cannot be faster (no bf16 instructions, or
+           the matmul probe says no), fp32, with nothing run in bf16.
+        2. A short trial: one warm-up crop, then up to 8 crops in each precision;
+           bf16 slower there (a conv-heavy tower) → fp32.
+        3. The whole sample in both: bf16 is kept only if the worst centred
+           cosine is at least MIN_CENTRED_COSINE, the phrases' top-1 agreement
+           at least MIN_TOP1_AGREEMENT, the worst relevancy change at most
+           MAX_RELEVANCY_CHANGE, and bf16 was faster on the sample.
+
+        Returns:
+            The JSON-serialisable report stored with the features: "precision"
+            kept, "reason", "checked" ("bf16"), "crops", "bf16_probe" (the
+            evidence of `bf16_is_fast`), "bar", and, where bf16 ran, "seconds"
+            ({"fp32", "bf16"} per stage) and the agreement figures.
+        """
+        crops = np.asarray(crops)
+        fast, evidence = bf16_is_fast(self.device, self.width)
+        report: dict[str, Any] = {
             "checked": "bf16",
             "crops": int(len(crops)),
-            **fig,
+            "bf16_probe": evidence,
             "bar": {
                 "worst_centred_cosine": MIN_CENTRED_COSINE,
                 "top1_agreement": MIN_TOP1_AGREEMENT,
+                "worst_relevancy_change": MAX_RELEVANCY_CHANGE,
             },
         }
+        self.precision, self._fast = "fp32", None
+        if not fast:
+            where = "this CPU" if self.device.type == "cpu" else "this device"
+            return {"precision": "fp32", "reason": f"bf16 not faster on {where}",
+                    **report}  # fmt: skip
+        trial = crops[: min(8, len(crops))]
+        seconds: dict[str, Any] = {}
+        for p in ("fp32", "bf16"):
+            self._encode(trial[:1], p)  # warm-up (and the bf16 copy)
+            seconds[f"trial_{p}"] = self._timed_encode(trial, p)[1]
+        report["seconds"] = seconds
+        if seconds["trial_bf16"] >= seconds["trial_fp32"]:
+            self._fast = None
+            return {"precision": "fp32",
+                    "reason": "bf16 slower than fp32 on a trial of the sample",
+                    **report}  # fmt: skip
+        ref, seconds["fp32"] = self._timed_encode(crops, "fp32")
+        low, seconds["bf16"] = self._timed_encode(crops, "bf16")
+        fig = centred_agreement(
+            ref, low, self.encode_texts(list(CHECK_PHRASES)),
+            self.encode_texts(list(CANONICAL)),
+        )  # fmt: skip
+        agrees = (
+            fig["worst_centred_cosine"] >= MIN_CENTRED_COSINE
+            and fig["top1_agreement"] >= MIN_TOP1_AGREEMENT
+            and fig["worst_relevancy_change"] <= MAX_RELEVANCY_CHANGE
+        )
+        faster = seconds["bf16"] < seconds["fp32"]
+        if agrees and faster:
+            self.precision, reason = "bf16", "bf16 agrees with fp32 and is faster"
+        else:
+            self._fast = None
+            reason = ("bf16 disagrees with fp32" if not agrees
+                      else "bf16 agrees but was not faster on the sample")  # fmt: skip
+        return {"precision": self.precision, "reason": reason, **report, **fig}
 
     # ------------------------------------------------------------ encoding
     def _encode(self, crops: np.ndarray, precision: str) -> np.ndarray:
@@ -378,18 +674,17 @@ class OpenClipEncoder:
         return out
 
     def encode_images(self, crops: np.ndarray) -> np.ndarray:
+        """Crops [B, S, S, 3] RGB in [0, 1] → [B, dim] unit rows, in the kept
+        precision."""
         return self._encode(crops, self.precision)
 
     @torch.inference_mode()
     def encode_texts(self, texts: list[str]) -> np.ndarray:
+        """Phrases → [Q, dim] unit rows, always in fp32."""
         if not texts:
             return np.zeros((0, self.dim), np.float32)
         if self._tok is None:
             self._tok = _tokenizer(self.model_name, self._tokenizer_path)
         tokens = self._tok(list(texts)).to(self.device)
-        if self.device.type == "cuda":
-            with torch.autocast("cuda", dtype=torch.float16):
-                f = self.net.encode_text(tokens)
-        else:
-            f = self.net.encode_text(tokens)
+        f = self.net.encode_text(tokens)
         return torch.nn.functional.normalize(f.float(), dim=-1).cpu().numpy()
