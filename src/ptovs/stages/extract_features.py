@@ -261,13 +261,19 @@ def encode_levels(
     """Encode each segment's crop of an image already segmented (`Level`s).
 
     A segment that recurs with the same mask (a region no finer level splits)
-    gives the same crop, so it is encoded once and its row copied."""
+    gives the same crop, so it is encoded once and its row copied. Crops are
+    resized as the encoder's pretrained tag resizes (`resample`, OpenCLIP's), or
+    with cv2 for the stand-in."""
+    resample = getattr(encoder, "resample", None)
     order, where = unique_segments(levels)
     feats = [np.zeros((lv.n, encoder.dim), np.float32) for lv in levels]
     for start in range(0, len(order), batch_size):  # bounded memory per batch
         batch = order[start : start + batch_size]
         crops = np.stack(
-            [prepare_crop(image, levels[lv].mask(k), crop_size) for lv, k in batch]
+            [
+                prepare_crop(image, levels[lv].mask(k), crop_size, resample=resample)
+                for lv, k in batch
+            ]  # fmt: skip
         )
         rows = encoder.encode_images(crops)
         for j, (lv, k) in enumerate(batch):
@@ -302,7 +308,11 @@ def unique_segments(
 
 
 def precision_sample(
-    image: np.ndarray, levels: list, crop_size: int, n: int = 48
+    image: np.ndarray,
+    levels: list,
+    crop_size: int,
+    n: int = 48,
+    resample: str | None = None,
 ) -> np.ndarray:
     """Up to n crops of one image's distinct segments, evenly spread over them
     (the sample `precision = "auto"` checks the reduced-precision tower on)."""
@@ -311,7 +321,8 @@ def precision_sample(
         return np.zeros((0, crop_size, crop_size, 3), np.float32)
     pick = np.unique(np.linspace(0, len(order) - 1, min(n, len(order))).astype(int))
     return np.stack(
-        [prepare_crop(image, levels[order[i][0]].mask(order[i][1]), crop_size)
+        [prepare_crop(image, levels[order[i][0]].mask(order[i][1]), crop_size,
+                      resample=resample)
          for i in pick]
     )  # fmt: skip
 
@@ -322,7 +333,9 @@ def check_precision(encoder: Encoder, levels: list, image, crop_size: int):
     "auto"); None otherwise."""
     if getattr(encoder, "precision_wanted", None) != "auto":
         return None
-    sample = precision_sample(image, levels, crop_size)
+    sample = precision_sample(
+        image, levels, crop_size, resample=getattr(encoder, "resample", None)
+    )
     if not len(sample):
         log.info("precision: no segments to check on; keeping fp32")
         return {"precision": "fp32", "checked": "bf16", "crops": 0}
