@@ -7,6 +7,7 @@
 #   make bench-accuracy  the accuracy instrument: 18 seeds, every variant, CIs (~2 h)
 #   make bench-standin   the stand-in's failure profile against CLIP's (calibration seeds)
 #   make bench-multiapp  the paper's multi-appearance claim in stand-in 5's world (fresh seeds)
+#   make bench-real-chain  the real-class chain end to end, 100 landmark photos (~1.5 h)
 #   make bench-growth  each stage's time, memory and quality at 100-763 photos (landmark)
 #   make bench-peers OPENSPLAT_SRC=DIR  reconstruct beside OpenSplat --cpu (a clone you give)
 #   make -j3 all       every scene under DATA in parallel, stages in order, then the
@@ -59,7 +60,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # column, a tiled roof; what it selects is in docs/results.md, "The demo")
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo pictures view test system-deps test-slurm lint format bench bench-accuracy bench-encoders bench-standin bench-multiapp bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
+.PHONY: setup demo pictures view test system-deps test-slurm lint format bench bench-accuracy bench-encoders bench-real-chain bench-standin bench-multiapp bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
 
 # where torch and torchvision come from: PyTorch's CPU index by default (PyPI's Linux
 # torch is the CUDA build, several GB); with an NVIDIA GPU give its CUDA index, e.g.
@@ -202,6 +203,12 @@ bench-encoders: setup
 	$(BIN)/python bench/segmenters.py --out $(QWORK)/segmenters.json
 	$(BIN)/python bench/economies.py --data $(QDATA)/econ --preset landmark --seed 0 \
 	  --photos 20 --views 6 --out $(QWORK)/econ/landmark_s0.json
+
+# the real-class chain end to end (random-weight MobileCLIP2-S0, hier; full method and
+# photo alone, photos to query and select, each stage in its own process) on 100
+# landmark photos, SAM 2.1 tiny on 20 of them, 763-photo hours projected (~1.5 h)
+bench-real-chain: setup
+	$(BIN)/python bench/real_chain.py --photos 100 --sam2 20 --work $(QWORK)/real_chain
 
 # how each stage's time, peak RSS and output quality grow with the collection: the
 # landmark world at 100, 200, 400 and 763 photos, one size at a time, the default
