@@ -67,22 +67,25 @@ def scene(data: Path, photos: int) -> Path:
 
 
 def random_clip(path: Path) -> Path:
-    """MobileCLIP2-S0 with seeded random weights, saved as a user's .safetensors."""
+    """MobileCLIP2-S0 with seeded random weights, saved as a user's .safetensors.
+
+    Built in a child process: this process stays small, since a stage's peak RSS
+    (wait4's ru_maxrss) starts from what its parent held when it forked."""
     if path.is_file():
         return path
-    import torch
-    from safetensors.torch import save_file
-
-    from ptovs.compat import import_backend
-
-    open_clip = import_backend("open_clip")  # PyPI's torchvision stubbed as ptovs does
-
-    torch.manual_seed(0)
-    net = open_clip.create_model(MODEL, pretrained=None)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    save_file({k: v.contiguous() for k, v in net.state_dict().items()}, str(tmp))
-    os.replace(tmp, path)
+    code = f"""
+import os, torch
+from safetensors.torch import save_file
+from ptovs.compat import import_backend
+open_clip = import_backend("open_clip")  # PyPI's torchvision stubbed as ptovs does
+torch.manual_seed(0)
+net = open_clip.create_model({MODEL!r}, pretrained=None)
+tmp = {str(path.with_suffix(".tmp"))!r}
+save_file({{k: v.contiguous() for k, v in net.state_dict().items()}}, tmp)
+os.replace(tmp, {str(path)!r})
+"""
+    subprocess.run([sys.executable, "-c", code], check=True)
     return path
 
 
