@@ -1,7 +1,20 @@
 """SAM 2.1 as a multi-level segmenter: the same recipe as `ptovs.segment.sam`
-(outputs 0/1/2 of the multimask decoder are levels s/m/l, SAM's filters,
-LangSplat's mask NMS) with SAM 2.1's hierarchical (Hiera) image encoder, which is
-cheaper than SAM's ViT on a CPU (bench/segmenters.py).
+(LangSplat's thresholds and SAM-1 clean-up, LangSplat's mask NMS) with SAM 2.1's
+hierarchical (Hiera) image encoder, which is cheaper than SAM's ViT on a CPU
+(bench/segmenters.py).
+
+Levels: SAM 2.1's mask decoder returns its mask tokens 1..3 for a multimask
+prompt (`MaskDecoder.forward`: `masks[:, 1:]`), three learned slots that nothing
+in the head orders by size, so ptovs sorts each prompt's three masks by area
+(`level_order = "area"`): s is the smallest, l the largest.
+
+Where it departs from sam2's own `SAM2AutomaticMaskGenerator` (whose defaults are
+pred_iou_thresh 0.8, stability 0.95, no crops, no clean-up), on purpose: LangSplat's
+SAM-1 settings (0.7, 0.85, one crop layer, 100 px), for comparability with the
+paper, and SAM-1's clean-up of small holes and islands on the full-size masks
+(OpenCV) instead of sam2's hole filling on the low-resolution logits, which needs
+sam2's CUDA extension and is skipped with a warning on a CPU build anyway. With
+the same settings the masks equal sam2's generator's (tests/test_sam2.py).
 
 The `sam2` package (extra `[sam2]`; pyproject says how to install it without a
 CUDA torch) supplies the model, `SAM2ImagePredictor` and `utils.amg`; the
@@ -66,7 +79,8 @@ def load_sam2(
 
 
 class Sam2Points:
-    """sam2's `SAM2ImagePredictor` as the generator's `PointPredictor`."""
+    """sam2's `SAM2ImagePredictor` as the generator's `PointPredictor` (built
+    without hole filling: `max_hole_area` = `max_sprinkle_area` = 0)."""
 
     def __init__(self, predictor: Any):
         self.predictor = predictor
@@ -93,7 +107,8 @@ class Sam2Points:
 
 class Sam2Segmenter(MaskGenerator):
     """SAM 2.1 from `checkpoint` (or `model=`, a built `SAM2Base`); `options` are
-    `MaskGenerator`'s (levels, points_per_side, crop_n_layers, the filters)."""
+    `MaskGenerator`'s (levels, points_per_side, crop_n_layers, the filters,
+    level_order: "area" by default)."""
 
     name = "sam2"
 
@@ -113,6 +128,7 @@ class Sam2Segmenter(MaskGenerator):
         predictor_cls = import_backend("sam2.sam2_image_predictor").SAM2ImagePredictor
         self.predictor = predictor_cls(self.model)
         amg = import_backend("sam2.utils.amg")
+        options.setdefault("level_order", "area")
         super().__init__(Sam2Points(self.predictor), amg, **options)
 
 
