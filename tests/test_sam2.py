@@ -4,8 +4,9 @@ One randomly initialised (seeded) hiera-tiny, saved as sam2 saves its checkpoint
 ({"model": state_dict}), serves every test: the segmenter's levels are valid, our
 point adapter answers exactly as sam2's own `SAM2ImagePredictor.predict` on the
 same weights and image, our generator's masks are sam2's own
-`SAM2AutomaticMaskGenerator`'s mask for mask, and preflight refuses a missing file
-and another model's checkpoint in one line, before any stage runs.
+`SAM2AutomaticMaskGenerator`'s mask for mask, and preflight refuses a missing file,
+a SAM 2.0 checkpoint and another model's checkpoint in one line, naming the fix,
+before any stage runs.
 """
 
 from __future__ import annotations
@@ -33,6 +34,8 @@ from ptovs.errors import InputError, MissingInputError  # noqa: E402
 from ptovs.preflight import check_extract_config  # noqa: E402
 from ptovs.segment import NO_SEGMENT, get_segmenter  # noqa: E402
 from ptovs.segment.sam2 import (  # noqa: E402
+    SAM2_MODELS,
+    SAM2_TRUNKS,
     Sam2Points,
     build_sam2_model,
 )
@@ -227,9 +230,29 @@ def test_preflight_refuses_missing_and_other_models_checkpoints(
     with pytest.raises(InputError, match=r"choose from \['tiny', 'small'"):
         check(sam_checkpoint=str(tiny_ckpt), sam2_model="hiera_t")
     # another size: tiny's tensors are a subset of small's (fewer blocks)
-    with pytest.raises(InputError, match="not a SAM 2.1 small checkpoint") as e:
+    with pytest.raises(
+        InputError, match="is a SAM 2.1 tiny checkpoint, not small"
+    ) as e:
         check(sam_checkpoint=str(tiny_ckpt), sam2_model="small")
+    assert "set extract-features.sam2_model = 'tiny'" in str(e.value)
     assert str(tiny_ckpt) in str(e.value) and "\n" not in str(e.value)
+    # SAM 2.0 (Meta's sam2_hiera_tiny.pt): 2.1 less three video-memory tensors
+    from sam2.build_sam import build_sam2
+
+    sam20 = build_sam2("configs/sam2/sam2_hiera_t.yaml", None, device="cpu")
+    sam20_path = tmp_path / "sam2_hiera_tiny.pt"
+    torch.save({"model": sam20.state_dict()}, sam20_path)
+    for model, fix in [
+        ("tiny", ""),
+        ("small", " and set extract-features.sam2_model = 'tiny'"),
+    ]:
+        with pytest.raises(InputError, match="is a SAM 2.0 tiny checkpoint") as e:
+            check(sam_checkpoint=str(sam20_path), sam2_model=model)
+        msg = str(e.value)
+        assert (
+            msg.endswith(f"give Meta's sam2.1_hiera_tiny.pt{fix}") and "\n" not in msg
+        )
+        assert "no_obj_embed_spatial" in msg
     # a SAM 1 checkpoint (a bare state dict of segment_anything's names)
     try:
         from ptovs.segment.sam import tiny_sam
@@ -258,3 +281,24 @@ def test_preflight_refuses_missing_and_other_models_checkpoints(
     assert r.exit_code == 1 and str(sam1_path) in r.output, r.output
     assert "Traceback" not in r.output
     assert not work.exists()
+
+
+def test_trunk_table_follows_sam2s_configs() -> None:
+    """`SAM2_TRUNKS` (how preflight names a checkpoint's size) is what sam2's own
+    configs build: Hiera's embed_dim and the sum of its stages (Hiera's defaults
+    where a config leaves them out)."""
+    import inspect
+
+    import sam2
+    import yaml
+    from sam2.modeling.backbones.hieradet import Hiera
+
+    default = inspect.signature(Hiera).parameters
+    found = {}
+    for name, cfg in SAM2_MODELS.items():
+        text = (Path(sam2.__file__).parent / "configs" / "sam2.1" / cfg).read_text()
+        trunk = yaml.safe_load(text)["model"]["image_encoder"]["trunk"]
+        dim = trunk.get("embed_dim", default["embed_dim"].default)
+        stages = trunk.get("stages", default["stages"].default)
+        found[(dim, sum(stages))] = name
+    assert found == SAM2_TRUNKS

@@ -49,6 +49,38 @@ SAM2_MODELS = {
 sam2.1_hiera_tiny.pt, _small.pt, _base_plus.pt and _large.pt."""
 
 
+SAM2_TRUNKS = {
+    (96, 12): "tiny",
+    (96, 16): "small",
+    (112, 24): "base_plus",
+    (144, 48): "large",
+}
+"""(Hiera trunk width, blocks) → sam2_model, from sam2's configs (embed_dim, stages)."""
+
+SAM21_ONLY = (
+    "no_obj_embed_spatial",
+    "obj_ptr_tpos_proj.weight",
+    "obj_ptr_tpos_proj.bias",
+)
+"""Tensors SAM 2.1 added to SAM 2.0 (same names and shapes otherwise): the video
+memory's no-object embedding and object-pointer projection. Their absence tells a
+SAM 2.0 checkpoint (sam2_hiera_*.pt) from a SAM 2.1 one."""
+
+
+def sam2_kind(state: dict) -> tuple[str, str] | None:
+    """("2.0" or "2.1", sam2_model or "") of a SAM 2 state dict, None if it
+    holds no Hiera trunk."""
+    trunk = "image_encoder.trunk."
+    patch = state.get(trunk + "patch_embed.proj.weight")
+    if patch is None or not hasattr(patch, "shape"):
+        return None
+    blocks = {
+        k[len(trunk) :].split(".")[1] for k in state if k.startswith(trunk + "blocks.")
+    }
+    size = SAM2_TRUNKS.get((int(patch.shape[0]), len(blocks)), "")
+    return ("2.1" if all(k in state for k in SAM21_ONLY) else "2.0"), size
+
+
 def build_sam2_model(model_type: str = "tiny", device: str = "cpu") -> Any:
     """SAM 2.1 `model_type`, randomly initialised, in eval mode on `device`."""
     if model_type not in SAM2_MODELS:
@@ -133,10 +165,13 @@ class Sam2Segmenter(MaskGenerator):
 
 
 __all__ = [
+    "SAM21_ONLY",
     "SAM2_MODELS",
+    "SAM2_TRUNKS",
     "Sam2Points",
     "Sam2Segmenter",
     "build_sam2_model",
     "load_sam2",
+    "sam2_kind",
     "sam2_state_dict",
 ]
