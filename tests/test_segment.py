@@ -120,6 +120,33 @@ def test_box_nms_greedy():
     assert box_nms(torch.zeros(0, 4), torch.zeros(0), 0.5).numel() == 0
 
 
+def test_reuse_freed_memory_keeps_freed_tensors_pages():
+    """Inside `reuse_freed_memory` freed 64 MB tensors' pages serve the next ones
+    (no page faults once the heap has grown); outside, glibc unmaps each and the
+    kernel faults in fresh zeroed pages every time; on exit that default is back."""
+    import resource
+
+    from ptovs.segment.generator import _glibc, reuse_freed_memory
+
+    if _glibc() is None:
+        pytest.skip("not glibc, or malloc tuned through the environment")
+
+    def faults(n: int = 3) -> int:
+        start = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+        for _ in range(n):
+            t = torch.ones(16 << 20)  # 64 MB, above glibc's largest mmap threshold
+            del t
+        return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - start
+
+    outside = faults()
+    assert outside > 3 * 10_000  # 16384 pages each
+    with reuse_freed_memory():
+        faults(4)  # the heap grows to a few such tensors (aligned allocations)
+        inside = faults()
+    assert inside < outside / 10
+    assert faults() > outside / 2
+
+
 def test_paint_later_masks_win_and_ids_are_dense():
     a = np.zeros((4, 4), bool)
     a[:2] = True
@@ -235,9 +262,19 @@ def test_sam_tiny_random_model_runs(tmp_path):
         get_segmenter("sam")
 
 
+@pytest.fixture
+def one_thread():
+    """torch on one thread: the tiny SAM's ops are too small to share, and two
+    threads waiting on each other on a busy machine made the test 20x slower."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.mark.skipif(not HAS_SAM, reason=NO_SAM)
 @pytest.mark.parametrize("order", ["index", "area"])
-def test_sam_generator_equals_segment_anythings(monkeypatch, order):
+def test_sam_generator_equals_segment_anythings(monkeypatch, order, one_thread):
     """Per level, our candidates are segment-anything's own
     `SamAutomaticMaskGenerator` run with that level's output (or all three for
     "default"), mask for mask and in order, on seeded random weights with crops,

@@ -22,7 +22,12 @@ import numpy as np
 import torch
 
 from ptovs.compat import import_backend
-from ptovs.segment.generator import LEVEL_OUTPUTS, MaskGenerator, local_checkpoint
+from ptovs.segment.generator import (
+    LEVEL_OUTPUTS,
+    MaskGenerator,
+    default_points_per_batch,
+    local_checkpoint,
+)
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +99,7 @@ class SamSegmenter(MaskGenerator):
         )
         self.predictor = self.sa.SamPredictor(self.model)
         amg = import_backend("segment_anything.utils.amg")
+        options.setdefault("points_per_batch", default_points_per_batch(device))
         super().__init__(SamPoints(self.predictor), amg, **options)
 
 

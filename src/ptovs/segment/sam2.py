@@ -37,7 +37,11 @@ import numpy as np
 import torch
 
 from ptovs.compat import import_backend
-from ptovs.segment.generator import MaskGenerator, local_checkpoint
+from ptovs.segment.generator import (
+    MaskGenerator,
+    default_points_per_batch,
+    local_checkpoint,
+)
 
 SAM2_MODELS = {
     "tiny": "sam2.1_hiera_t.yaml",
@@ -161,6 +165,7 @@ class Sam2Segmenter(MaskGenerator):
         self.predictor = predictor_cls(self.model)
         amg = import_backend("sam2.utils.amg")
         options.setdefault("level_order", "area")
+        options.setdefault("points_per_batch", default_points_per_batch(device))
         super().__init__(Sam2Points(self.predictor), amg, **options)
 
 
