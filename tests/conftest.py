@@ -194,6 +194,110 @@ def assert_points_match(ours, theirs, img) -> None:
             np.testing.assert_allclose(iou[i].numpy(), ious, rtol=1e-4, atol=1e-5)
 
 
+def reference_batched_nms(boxes, scores, idxs, iou_threshold: float):
+    """torchvision's `batched_nms` written out (its compiled op does not load on
+    our CPU torch), the oracle patched into upstream's generators: greedy by
+    descending score, equal scores in input order (its CPU kernel's stable sort),
+    a box kept unless a kept box of its category overlaps it by IoU > threshold."""
+    import torch
+
+    def iou(a, b) -> float:
+        w = min(a[2], b[2]) - max(a[0], b[0])
+        h = min(a[3], b[3]) - max(a[1], b[1])
+        inter = max(w, 0.0) * max(h, 0.0)
+        union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+        return inter / union if union > 0 else 0.0
+
+    b, s, c = boxes.tolist(), scores.tolist(), idxs.tolist()
+    keep: list[int] = []
+    for i in sorted(range(len(s)), key=lambda i: -s[i]):  # sorted() is stable
+        if all(c[i] != c[j] or iou(b[i], b[j]) <= iou_threshold for j in keep):
+            keep.append(i)
+    return torch.tensor(keep, dtype=torch.int64)
+
+
+def add_disks(predict, radii: tuple[float, ...], to_pixels):
+    """Upstream's batched predict (SAM's `predict_torch`, sam2's `_predict`) with a
+    cone of radius `radii[k]` px around each prompt added to output k's logits
+    (`to_pixels`: the prompts' model coordinates [N, 2] → pixels of the crop).
+    Random weights answer every prompt alike; with this, masks depend on the
+    prompt, differ in size by output, and keep the model's texture at their rims.
+    Patched into ours and upstream's alike, it tests the generator, not SAM."""
+    import torch
+
+    def wrapped(points, labels, *args, **kwargs):
+        masks, iou, low = predict(points, labels, *args, **kwargs)
+        h, w = masks.shape[-2:]
+        p = to_pixels(points[:, 0, :].float())
+        yy, xx = torch.meshgrid(
+            torch.arange(h) + 0.5, torch.arange(w) + 0.5, indexing="ij"
+        )
+        d = torch.hypot(xx - p[:, 0, None, None], yy - p[:, 1, None, None])
+        cones = torch.stack([(r - d) * 0.25 for r in radii], 1)
+        return masks + cones.to(masks.dtype), iou, low
+
+    return wrapped
+
+
+def one_output(predict, outputs: tuple[int, ...], by_area: bool, threshold: float):
+    """Upstream's batched predict (SAM's `predict_torch`, sam2's `_predict`)
+    answering with only `outputs` of its three multimask outputs; with `by_area`,
+    each prompt's three sorted by mask area first (equal areas in output order)."""
+    import torch
+
+    a, b = outputs[0], outputs[-1] + 1
+
+    def wrapped(*args, **kwargs):
+        masks, iou, low = predict(*args, **kwargs)
+        if by_area:
+            for n in range(len(masks)):
+                area = (masks[n] > threshold).flatten(1).sum(1).tolist()
+                order = torch.tensor(sorted(range(3), key=lambda k: area[k]))
+                masks[n], iou[n], low[n] = masks[n][order], iou[n][order], low[n][order]
+        return masks[:, a:b], iou[:, a:b], low[:, a:b]
+
+    return wrapped
+
+
+def langsplat_paint(masks: list, iou: list, stability: list, shape):
+    """LangSplat's `masks_update` and `mask2segmap` on one level's masks (its
+    score is stability × predicted IoU in float64); the labels renumbered to the
+    visible masks as ptovs does. Returns (labels [H, W] int32, visible masks)."""
+    import numpy as np
+    import torch
+
+    from ptovs.segment.masks import mask_nms_reference
+
+    if not masks:
+        return np.full(shape, -1, np.int32), []
+    scores = torch.from_numpy(np.asarray(stability) * np.asarray(iou))
+    keep = mask_nms_reference(torch.from_numpy(np.stack(masks)), scores).tolist()
+    kept = [m for i, m in enumerate(masks) if i in keep]  # LangSplat's `filter`
+    raw = np.full(shape, -1, np.int64)
+    for i, m in enumerate(kept):
+        raw[m] = i
+    visible = np.unique(raw[raw >= 0])
+    lut = np.full(len(kept) + 1, -1, np.int32)
+    lut[visible] = np.arange(len(visible))
+    return lut[raw], [kept[i] for i in visible]
+
+
+def assert_same_masks(ours: dict, anns: list[dict]) -> None:
+    """Our candidates of one level (`MaskGenerator.candidates`) are upstream's
+    annotations (`generate()` records), mask for mask, in the same order."""
+    import numpy as np
+
+    assert len(ours["masks"]) == len(anns)
+    for k, ann in enumerate(anns):
+        assert np.array_equal(ours["masks"][k].numpy(), ann["segmentation"]), k
+    np.testing.assert_allclose(
+        ours["iou"].numpy(), [a["predicted_iou"] for a in anns], rtol=1e-6
+    )
+    np.testing.assert_allclose(
+        ours["stability"].numpy(), [a["stability_score"] for a in anns], rtol=1e-6
+    )
+
+
 def copy_work(src: Path, dst: Path) -> Path:
     """A private copy of a work dir (artifacts, no locks)."""
     shutil.copytree(src, dst, ignore=shutil.ignore_patterns("*.lock"))

@@ -3,8 +3,10 @@
 One randomly initialised (seeded) hiera-tiny, saved as sam2 saves its checkpoints
 ({"model": state_dict}), serves every test: the segmenter's levels are valid, our
 point adapter answers exactly as sam2's own `SAM2ImagePredictor.predict` on the
-same weights and image, and preflight refuses a missing file and another model's
-checkpoint in one line, before any stage runs.
+same weights and image, our generator's masks are sam2's own
+`SAM2AutomaticMaskGenerator`'s mask for mask, and preflight refuses a missing file,
+a SAM 2.0 checkpoint and another model's checkpoint in one line, naming the fix,
+before any stage runs.
 """
 
 from __future__ import annotations
@@ -16,7 +18,14 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from conftest import assert_points_match
+from conftest import (
+    add_disks,
+    assert_points_match,
+    assert_same_masks,
+    langsplat_paint,
+    one_output,
+    reference_batched_nms,
+)
 
 pytest.importorskip("sam2")
 
@@ -24,7 +33,12 @@ from ptovs.cli import main as cli  # noqa: E402
 from ptovs.errors import InputError, MissingInputError  # noqa: E402
 from ptovs.preflight import check_extract_config  # noqa: E402
 from ptovs.segment import NO_SEGMENT, get_segmenter  # noqa: E402
-from ptovs.segment.sam2 import Sam2Points, build_sam2_model  # noqa: E402
+from ptovs.segment.sam2 import (  # noqa: E402
+    SAM2_MODELS,
+    SAM2_TRUNKS,
+    Sam2Points,
+    build_sam2_model,
+)
 from ptovs.stages.extract_features import Config, build_segmenter  # noqa: E402
 
 
@@ -98,6 +112,108 @@ def test_adapter_equals_sam2_image_predictor(tiny_ckpt: Path) -> None:
     assert not theirs._is_image_set
 
 
+def _memoise_encoder(predictor) -> None:
+    """One encoder pass per distinct crop, for ours and upstream's generator."""
+    keep = ("_features", "_orig_hw", "_is_image_set", "_is_batch")
+    seen: dict = {}
+    set_image = predictor.set_image
+
+    def cached(image):
+        key = (image.shape, image.tobytes())
+        if key not in seen:
+            set_image(image)
+            seen[key] = {k: getattr(predictor, k) for k in keep}
+        for k, v in seen[key].items():
+            setattr(predictor, k, v)
+
+    predictor.set_image = cached
+
+
+def test_generator_equals_sam2s_automatic_mask_generator(
+    tiny_ckpt: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Per level, our candidates are sam2's own `SAM2AutomaticMaskGenerator`'s
+    masks when its predictor answers with that level's output (the three sorted
+    by area, our SAM 2.1 default), mask for mask and in order, on seeded random
+    weights over several batches: as sam2 runs it (no clean-up; "default", which
+    pools the three outputs), and for every level with SAM-1's
+    small-region clean-up from sam2's own `postprocess_small_regions` (LangSplat's
+    recipe, what ptovs runs); the painted levels are LangSplat's of those masks.
+    Thresholds 0 (upstream: filters off) and prompt-centred cones on the logits
+    (conftest.add_disks), so random weights give masks of every size. One crop
+    layer would cost four more encoder passes; crops are covered on SAM 1, whose
+    generator loop is this one (tests/test_segment.py). Random weights with
+    LangSplat's thresholds find nothing: every level has n == 0."""
+    from ptovs.compat import import_backend
+
+    amg_gen = import_backend("sam2.automatic_mask_generator")
+    from sam2.utils.amg import rle_to_mask
+
+    monkeypatch.setattr(amg_gen, "batched_nms", reference_batched_nms)
+    levels = ("default", "s", "m", "l")
+    opts = dict(
+        points_per_side=4,
+        points_per_batch=8,
+        pred_iou_thresh=0.0,
+        stability_score_thresh=0.0,
+        crop_n_layers=0,
+    )
+    seg = get_segmenter(
+        "sam2", checkpoint=tiny_ckpt, levels=levels, min_mask_region_area=0, **opts
+    )
+    assert seg.level_order == "area"
+    pred = seg.predictor
+    _memoise_encoder(pred)
+    radii = (12.0, 25.0, 5.0)  # output slots not in size order
+
+    def to_pixels(p):  # sam2's normalised input frame → crop pixels
+        h, w = pred._orig_hw[-1]
+        return p / pred._transforms.resolution * torch.tensor([w, h])
+
+    predict = pred._predict
+    monkeypatch.setattr(pred, "_predict", add_disks(predict, radii, to_pixels))
+    img = _image(96, 128)
+    ours = {0: seg.candidates(img)}
+    seg.min_mask_region_area = 20
+    ours[20] = seg.candidates(img)
+    painted = seg.segment(img)
+    total = 0
+    for i, level in enumerate(levels):
+        gen = amg_gen.SAM2AutomaticMaskGenerator(seg.model, **opts)
+        gen.predictor = pred  # the same predictor: no hole filling, one encoder pass
+        outputs = (0, 1, 2) if level == "default" else (i - 1,)
+        one = one_output(add_disks(predict, radii, to_pixels), outputs, True, 0.0)
+        monkeypatch.setattr(pred, "_predict", one)
+        if level == "default":  # sam2's own loop, as it runs it (all outputs)
+            assert_same_masks(ours[0][level], gen.generate(img))
+        data = gen._generate_masks(img)
+        data = gen.postprocess_small_regions(data, 20, 0.7)  # SAM-1's step
+        anns = [
+            dict(segmentation=rle_to_mask(r), predicted_iou=p, stability_score=q)
+            for r, p, q in zip(
+                data["rles"], data["iou_preds"], data["stability_score"], strict=True
+            )
+        ]
+        assert_same_masks(ours[20][level], anns)
+        total += len(anns)
+        labels, visible = langsplat_paint(
+            [a["segmentation"] for a in anns],
+            [a["predicted_iou"] for a in anns],
+            [a["stability_score"] for a in anns],
+            img.shape[:2],
+        )
+        assert np.array_equal(painted[i].labels, labels)
+        assert len(painted[i].masks) == len(visible)
+    assert total > 20
+    # smallest to largest: s < m < l on average
+    area = [float(ours[20][lv]["masks"].sum((1, 2)).float().mean()) for lv in "sml"]
+    assert area[0] < area[1] < area[2]
+    # nothing found is n == 0, not an error
+    monkeypatch.setattr(pred, "_predict", predict)
+    seg.pred_iou_thresh, seg.stability_score_thresh = 0.7, 0.85  # LangSplat's
+    assert [lv.n for lv in seg.segment(img)] == [0, 0, 0, 0]
+
+
 def test_preflight_refuses_missing_and_other_models_checkpoints(
     tiny_ckpt: Path, tiny_scene_dir: Path, tmp_path: Path
 ) -> None:
@@ -114,9 +230,29 @@ def test_preflight_refuses_missing_and_other_models_checkpoints(
     with pytest.raises(InputError, match=r"choose from \['tiny', 'small'"):
         check(sam_checkpoint=str(tiny_ckpt), sam2_model="hiera_t")
     # another size: tiny's tensors are a subset of small's (fewer blocks)
-    with pytest.raises(InputError, match="not a SAM 2.1 small checkpoint") as e:
+    with pytest.raises(
+        InputError, match="is a SAM 2.1 tiny checkpoint, not small"
+    ) as e:
         check(sam_checkpoint=str(tiny_ckpt), sam2_model="small")
+    assert "set extract-features.sam2_model = 'tiny'" in str(e.value)
     assert str(tiny_ckpt) in str(e.value) and "\n" not in str(e.value)
+    # SAM 2.0 (Meta's sam2_hiera_tiny.pt): 2.1 less three video-memory tensors
+    from sam2.build_sam import build_sam2
+
+    sam20 = build_sam2("configs/sam2/sam2_hiera_t.yaml", None, device="cpu")
+    sam20_path = tmp_path / "sam2_hiera_tiny.pt"
+    torch.save({"model": sam20.state_dict()}, sam20_path)
+    for model, fix in [
+        ("tiny", ""),
+        ("small", " and set extract-features.sam2_model = 'tiny'"),
+    ]:
+        with pytest.raises(InputError, match="is a SAM 2.0 tiny checkpoint") as e:
+            check(sam_checkpoint=str(sam20_path), sam2_model=model)
+        msg = str(e.value)
+        assert (
+            msg.endswith(f"give Meta's sam2.1_hiera_tiny.pt{fix}") and "\n" not in msg
+        )
+        assert "no_obj_embed_spatial" in msg
     # a SAM 1 checkpoint (a bare state dict of segment_anything's names)
     try:
         from ptovs.segment.sam import tiny_sam
@@ -145,3 +281,24 @@ def test_preflight_refuses_missing_and_other_models_checkpoints(
     assert r.exit_code == 1 and str(sam1_path) in r.output, r.output
     assert "Traceback" not in r.output
     assert not work.exists()
+
+
+def test_trunk_table_follows_sam2s_configs() -> None:
+    """`SAM2_TRUNKS` (how preflight names a checkpoint's size) is what sam2's own
+    configs build: Hiera's embed_dim and the sum of its stages (Hiera's defaults
+    where a config leaves them out)."""
+    import inspect
+
+    import sam2
+    import yaml
+    from sam2.modeling.backbones.hieradet import Hiera
+
+    default = inspect.signature(Hiera).parameters
+    found = {}
+    for name, cfg in SAM2_MODELS.items():
+        text = (Path(sam2.__file__).parent / "configs" / "sam2.1" / cfg).read_text()
+        trunk = yaml.safe_load(text)["model"]["image_encoder"]["trunk"]
+        dim = trunk.get("embed_dim", default["embed_dim"].default)
+        stages = trunk.get("stages", default["stages"].default)
+        found[(dim, sum(stages))] = name
+    assert found == SAM2_TRUNKS

@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import assert_points_match
+from conftest import (
+    add_disks,
+    assert_points_match,
+    assert_same_masks,
+    langsplat_paint,
+    one_output,
+    reference_batched_nms,
+)
 from ptovs.compat import available
 from ptovs.encoders import get_encoder
 from ptovs.segment import NO_SEGMENT, get_segmenter
@@ -113,6 +120,33 @@ def test_box_nms_greedy():
     assert box_nms(torch.zeros(0, 4), torch.zeros(0), 0.5).numel() == 0
 
 
+def test_reuse_freed_memory_keeps_freed_tensors_pages():
+    """Inside `reuse_freed_memory` freed 64 MB tensors' pages serve the next ones
+    (no page faults once the heap has grown); outside, glibc unmaps each and the
+    kernel faults in fresh zeroed pages every time; on exit that default is back."""
+    import resource
+
+    from ptovs.segment.generator import _glibc, reuse_freed_memory
+
+    if _glibc() is None:
+        pytest.skip("not glibc, or malloc tuned through the environment")
+
+    def faults(n: int = 3) -> int:
+        start = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+        for _ in range(n):
+            t = torch.ones(16 << 20)  # 64 MB, above glibc's largest mmap threshold
+            del t
+        return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - start
+
+    outside = faults()
+    assert outside > 3 * 10_000  # 16384 pages each
+    with reuse_freed_memory():
+        faults(4)  # the heap grows to a few such tensors (aligned allocations)
+        inside = faults()
+    assert inside < outside / 10
+    assert faults() > outside / 2
+
+
 def test_paint_later_masks_win_and_ids_are_dense():
     a = np.zeros((4, 4), bool)
     a[:2] = True
@@ -129,14 +163,22 @@ def test_paint_later_masks_win_and_ids_are_dense():
 
 
 @pytest.mark.skipif(not HAS_SAM, reason=NO_SAM)
-def test_sam_generator_levels_with_disk_predictions(monkeypatch):
-    """The generator loop on a predictor that answers each point with three disks."""
+@pytest.mark.parametrize(
+    "order, radii", [("index", (4.0, 9.0, 16.0)), ("area", (9.0, 16.0, 4.0))]
+)
+def test_sam_generator_levels_with_disk_predictions(monkeypatch, order, radii):
+    """The generator loop on a predictor that answers each point with three disks:
+    by index, output k is level k; by area (SAM 2.1's default), the smallest
+    disk is s and the largest l whatever output slot each comes in."""
     from ptovs.segment.sam import SamSegmenter, tiny_sam
 
     seg = SamSegmenter(
-        model=tiny_sam(), points_per_side=4, crop_n_layers=1, min_mask_region_area=4
+        model=tiny_sam(),
+        points_per_side=4,
+        crop_n_layers=1,
+        min_mask_region_area=4,
+        level_order=order,
     )
-    radii = (4.0, 9.0, 16.0)  # s, m, l
 
     def predict_torch(points, labels, multimask_output=True, return_logits=True):
         h, w = seg.predictor.original_size
@@ -166,6 +208,34 @@ def test_sam_generator_levels_with_disk_predictions(monkeypatch):
             assert lv.masks[k][lv.labels == k].all()
         areas.append(np.mean([m.sum() for m in lv.masks]))
     assert areas[0] < areas[1] < areas[2]  # subpart < part < whole
+    want = sorted(radii) if order == "area" else radii
+    smaller = 0.0
+    for lv, r in zip(levels, want, strict=True):  # each level holds its own disks
+        area = np.array([m.sum() for m in lv.masks])
+        assert (area <= 1.05 * np.pi * r**2).all()  # clipped at the image's edge
+        assert (area > 1.1 * np.pi * smaller**2).all()
+        smaller = r
+
+
+def test_order_by_area_sorts_each_prompt_and_keeps_pairs():
+    from ptovs.segment.generator import order_by_area
+
+    g = torch.Generator().manual_seed(0)
+    logits = (
+        torch.randn(5, 3, 6, 7, generator=g)
+        + torch.tensor([0.5, -0.5, 0.0])[None, :, None, None]
+    )
+    iou = torch.rand(5, 3, generator=g)
+    got, got_iou = order_by_area(logits, iou, 0.0)
+    area = (got > 0).sum((-2, -1))
+    assert (area[:, :-1] <= area[:, 1:]).all()
+    for n in range(5):  # a permutation of the prompt's own outputs, iou alike
+        for k in range(3):
+            j = [torch.equal(got[n, k], logits[n, i]) for i in range(3)].index(True)
+            assert got_iou[n, k] == iou[n, j]
+    same = torch.stack([logits[0, 0] - 9, logits[0, 0], logits[0, 0] + 9])[None]
+    out, _ = order_by_area(same, iou[:1], 0.0)
+    assert out is same  # already in order: returned as is
 
 
 @pytest.mark.skipif(not HAS_SAM, reason=NO_SAM)
@@ -190,6 +260,91 @@ def test_sam_tiny_random_model_runs(tmp_path):
         load_sam(tmp_path / "missing.pth")
     with pytest.raises(ValueError, match="sam_checkpoint"):
         get_segmenter("sam")
+
+
+@pytest.fixture
+def one_thread():
+    """torch on one thread: the tiny SAM's ops are too small to share, and two
+    threads waiting on each other on a busy machine made the test 20x slower."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.mark.skipif(not HAS_SAM, reason=NO_SAM)
+@pytest.mark.parametrize("order", ["index", "area"])
+def test_sam_generator_equals_segment_anythings(monkeypatch, order, one_thread):
+    """Per level, our candidates are segment-anything's own
+    `SamAutomaticMaskGenerator` run with that level's output (or all three for
+    "default"), mask for mask and in order, on seeded random weights with crops,
+    several batches and the small-region clean-up; and the painted levels are
+    LangSplat's `masks_update` + `mask2segmap` of upstream's masks. Thresholds 0
+    (upstream: filters off), so random weights give masks."""
+    from ptovs.compat import import_backend
+    from ptovs.segment.sam import SamSegmenter, tiny_sam
+
+    amg_mod = import_backend("segment_anything.automatic_mask_generator")
+    monkeypatch.setattr(amg_mod, "batched_nms", reference_batched_nms)
+    model = tiny_sam(seed=1)
+    radii = (5.0, 12.0, 25.0) if order == "index" else (12.0, 25.0, 5.0)
+
+    def disks(predictor):
+        def to_pixels(p):  # SAM's input frame (longest side 256) → crop pixels
+            (h, w), (ih, iw) = predictor.original_size, predictor.input_size
+            return p * torch.tensor([w / iw, h / ih])
+
+        return add_disks(predictor.predict_torch, radii, to_pixels)
+
+    opts = dict(
+        points_per_side=4,
+        points_per_batch=6,
+        pred_iou_thresh=0.0,
+        stability_score_thresh=0.0,
+        crop_n_layers=1,
+        min_mask_region_area=20,
+    )
+    levels = ("default", "s", "m", "l")
+    seg = SamSegmenter(model=model, levels=levels, level_order=order, **opts)
+    monkeypatch.setattr(seg.predictor, "predict_torch", disks(seg.predictor))
+    img = _blocks(96, 128)
+    ours = seg.candidates(img)
+    painted = seg.segment(img)
+    total = 0
+    for level, lv in zip(levels, painted, strict=True):
+        gen = amg_mod.SamAutomaticMaskGenerator(model, **opts)
+        predict = one_output(
+            disks(gen.predictor),
+            (0, 1, 2) if level == "default" else (("s", "m", "l").index(level),),
+            by_area=order == "area",
+            threshold=model.mask_threshold,
+        )
+        monkeypatch.setattr(gen.predictor, "predict_torch", predict)
+        anns = gen.generate(img)
+        assert_same_masks(ours[level], anns)
+        total += len(anns)
+        labels, visible = langsplat_paint(
+            [a["segmentation"] for a in anns],
+            [a["predicted_iou"] for a in anns],
+            [a["stability_score"] for a in anns],
+            img.shape[:2],
+        )
+        assert np.array_equal(lv.labels, labels)
+        assert len(lv.masks) == len(visible)
+        assert all(np.array_equal(a, b) for a, b in zip(lv.masks, visible, strict=True))
+    assert total > 20 and len(ours["default"]["masks"]) > len(ours["s"]["masks"])
+
+
+@pytest.mark.skipif(not HAS_SAM, reason=NO_SAM)
+def test_sam_finding_nothing_gives_empty_levels():
+    """LangSplat's thresholds on random weights keep no mask: every level is all
+    NO_SEGMENT with n == 0 (how extract-features counts an empty view)."""
+    from ptovs.segment.sam import SamSegmenter, tiny_sam
+
+    seg = SamSegmenter(model=tiny_sam(seed=1), points_per_side=4, crop_n_layers=0)
+    levels = seg.segment(_blocks(48, 64))
+    assert [lv.n for lv in levels] == [0, 0, 0]
+    assert all((lv.labels == NO_SEGMENT).all() and lv.masks == [] for lv in levels)
 
 
 @pytest.mark.skipif(not HAS_SAM, reason=NO_SAM)

@@ -152,25 +152,44 @@ def _sam2_shapes(model: str) -> dict:
 @functools.lru_cache(maxsize=8)
 def _sam2_fits(model: str, path: str, size: int, mtime_ns: int) -> None:
     """Load the checkpoint the way the segmenter will and compare it with the
-    model's tensors: names, shapes, and none left over (a strict load)."""
-    from ptovs.segment.sam2 import sam2_state_dict
+    model's tensors: names, shapes, and none left over (a strict load). A SAM 2.0
+    checkpoint, or SAM 2.1 of another size, is named as such with its fix."""
+    from ptovs.segment.sam2 import sam2_kind, sam2_state_dict
 
     state = _read_state("sam_checkpoint", path, sam2_state_dict)
     missing, wrong, extra = _state_mismatch(state, _sam2_shapes(model), extra=True)
-    if missing or wrong or extra:
-        what = wrong[:2] or missing[:2] or extra[:2]
-        sam1 = any(k.startswith("prompt_encoder.") for k in state)  # SAM 1's names
-        raise InputError(
-            f"sam_checkpoint {path} is not a SAM 2.1 {model} checkpoint: "
-            f"{len(missing)} tensors missing, {len(wrong)} of another shape, "
-            f"{len(extra)} left over (e.g. {what}); give sam2.1_hiera_{model}.pt, "
-            + (
-                "or set extract-features.segmenter = 'sam' (this is a SAM 1 "
-                "checkpoint) and sam_model"
-                if sam1
-                else "or set extract-features.sam2_model to the checkpoint's model"
+    if not (missing or wrong or extra):
+        return
+    version, size = sam2_kind(state) or ("", "")
+    if size and (version == "2.0" or size != model):
+        if version == "2.0":  # SAM 2.1 only added SAM21_ONLY's tensors
+            raise InputError(
+                f"sam_checkpoint {path} is a SAM 2.0 {size} checkpoint (it lacks SAM "
+                "2.1's no_obj_embed_spatial and obj_ptr_tpos_proj); ptovs builds SAM "
+                f"2.1: give Meta's sam2.1_hiera_{size}.pt"
+                + (
+                    f" and set extract-features.sam2_model = {size!r}"
+                    if size != model
+                    else ""
+                )
             )
+        raise InputError(
+            f"sam_checkpoint {path} is a SAM 2.1 {size} checkpoint, not {model}: set "
+            f"extract-features.sam2_model = {size!r} (or give sam2.1_hiera_{model}.pt)"
         )
+    what = wrong[:2] or missing[:2] or extra[:2]
+    sam1 = any(k.startswith("prompt_encoder.") for k in state)  # SAM 1's names
+    raise InputError(
+        f"sam_checkpoint {path} is not a SAM 2.1 {model} checkpoint: "
+        f"{len(missing)} tensors missing, {len(wrong)} of another shape, "
+        f"{len(extra)} left over (e.g. {what}); give sam2.1_hiera_{model}.pt, "
+        + (
+            "or set extract-features.segmenter = 'sam' (this is a SAM 1 "
+            "checkpoint) and sam_model"
+            if sam1
+            else "or set extract-features.sam2_model to the checkpoint's model"
+        )
+    )
 
 
 def check_openclip(

@@ -1,10 +1,12 @@
 """segment-anything as a multi-level segmenter (LangSplat's recipe, docs/method.md §4).
 
-SAM's three multimask outputs are LangSplat's levels s, m and l; the automatic
-generator loop (point grid, filters, box and mask NMS, painting) is
-`ptovs.segment.generator.MaskGenerator`, shared with SAM 2 (`ptovs.segment.sam2`).
-This module supplies vanilla SAM's model, predictor (through `SamPoints`) and
-`utils.amg` helpers.
+SAM's three multimask outputs are LangSplat's levels s, m and l, by index
+(`level_order = "index"`, as LangSplat, which relies on SAM's trained tokens
+coming out subpart, part, whole); the automatic generator loop (point grid, filters, box and mask
+NMS, painting) is `ptovs.segment.generator.MaskGenerator`, shared with SAM 2
+(`ptovs.segment.sam2`), and equals segment-anything's `SamAutomaticMaskGenerator`
+run per output (tests/test_segment.py). This module supplies vanilla SAM's model,
+predictor (through `SamPoints`) and `utils.amg` helpers.
 
 The model comes from a local checkpoint (`sam_checkpoint`, ViT-H in the paper);
 tests pass a tiny randomly initialised `Sam` as `model=`.
@@ -20,7 +22,12 @@ import numpy as np
 import torch
 
 from ptovs.compat import import_backend
-from ptovs.segment.generator import LEVEL_OUTPUTS, MaskGenerator, local_checkpoint
+from ptovs.segment.generator import (
+    LEVEL_OUTPUTS,
+    MaskGenerator,
+    default_points_per_batch,
+    local_checkpoint,
+)
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +47,8 @@ def load_sam(checkpoint: str | Path, model_type: str = "vit_h", device: str = "c
 
 
 class SamPoints:
-    """SAM's `SamPredictor` as the generator's `PointPredictor`."""
+    """SAM's `SamPredictor` as the generator's `PointPredictor`, called as
+    `SamAutomaticMaskGenerator._process_batch` calls it (float64 coordinates)."""
 
     def __init__(self, predictor: Any):
         self.predictor = predictor
@@ -54,8 +62,8 @@ class SamPoints:
     def predict(self, points: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         pred = self.predictor
         pts = pred.transform.apply_coords(points, self.size)
-        pts_t = torch.as_tensor(pts, dtype=torch.float32, device=pred.device)
-        labels = torch.ones(len(pts), dtype=torch.int64, device=pts_t.device)
+        pts_t = torch.as_tensor(pts, device=pred.device)
+        labels = torch.ones(len(pts), dtype=torch.int, device=pts_t.device)
         logits, iou, _ = pred.predict_torch(
             pts_t[:, None, :],
             labels[:, None],
@@ -70,7 +78,8 @@ class SamPoints:
 
 class SamSegmenter(MaskGenerator):
     """SAM from `checkpoint` (or `model=`); `options` are `MaskGenerator`'s
-    (levels, points_per_side, crop_n_layers, the filters' thresholds)."""
+    (levels, points_per_side, crop_n_layers, the filters' thresholds,
+    level_order: "index" by default, as LangSplat)."""
 
     name = "sam"
 
@@ -90,6 +99,7 @@ class SamSegmenter(MaskGenerator):
         )
         self.predictor = self.sa.SamPredictor(self.model)
         amg = import_backend("segment_anything.utils.amg")
+        options.setdefault("points_per_batch", default_points_per_batch(device))
         super().__init__(SamPoints(self.predictor), amg, **options)
 
 

@@ -1,7 +1,20 @@
 """SAM 2.1 as a multi-level segmenter: the same recipe as `ptovs.segment.sam`
-(outputs 0/1/2 of the multimask decoder are levels s/m/l, SAM's filters,
-LangSplat's mask NMS) with SAM 2.1's hierarchical (Hiera) image encoder, which is
-cheaper than SAM's ViT on a CPU (bench/segmenters.py).
+(LangSplat's thresholds and SAM-1 clean-up, LangSplat's mask NMS) with SAM 2.1's
+hierarchical (Hiera) image encoder, which is cheaper than SAM's ViT on a CPU
+(bench/segmenters.py).
+
+Levels: SAM 2.1's mask decoder returns its mask tokens 1..3 for a multimask
+prompt (`MaskDecoder.forward`: `masks[:, 1:]`), three learned slots that nothing
+in the head orders by size, so ptovs sorts each prompt's three masks by area
+(`level_order = "area"`): s is the smallest, l the largest.
+
+Where it departs from sam2's own `SAM2AutomaticMaskGenerator` (whose defaults are
+pred_iou_thresh 0.8, stability 0.95, no crops, no clean-up), on purpose: LangSplat's
+SAM-1 settings (0.7, 0.85, one crop layer, 100 px), for comparability with the
+paper, and SAM-1's clean-up of small holes and islands on the full-size masks
+(OpenCV) instead of sam2's hole filling on the low-resolution logits, which needs
+sam2's CUDA extension and is skipped with a warning on a CPU build anyway. With
+the same settings the masks equal sam2's generator's (tests/test_sam2.py).
 
 The `sam2` package (extra `[sam2]`; pyproject says how to install it without a
 CUDA torch) supplies the model, `SAM2ImagePredictor` and `utils.amg`; the
@@ -24,7 +37,11 @@ import numpy as np
 import torch
 
 from ptovs.compat import import_backend
-from ptovs.segment.generator import MaskGenerator, local_checkpoint
+from ptovs.segment.generator import (
+    MaskGenerator,
+    default_points_per_batch,
+    local_checkpoint,
+)
 
 SAM2_MODELS = {
     "tiny": "sam2.1_hiera_t.yaml",
@@ -34,6 +51,38 @@ SAM2_MODELS = {
 }
 """sam2_model → sam2's config (configs/sam2.1/); the checkpoints Meta publishes are
 sam2.1_hiera_tiny.pt, _small.pt, _base_plus.pt and _large.pt."""
+
+
+SAM2_TRUNKS = {
+    (96, 12): "tiny",
+    (96, 16): "small",
+    (112, 24): "base_plus",
+    (144, 48): "large",
+}
+"""(Hiera trunk width, blocks) → sam2_model, from sam2's configs (embed_dim, stages)."""
+
+SAM21_ONLY = (
+    "no_obj_embed_spatial",
+    "obj_ptr_tpos_proj.weight",
+    "obj_ptr_tpos_proj.bias",
+)
+"""Tensors SAM 2.1 added to SAM 2.0 (same names and shapes otherwise): the video
+memory's no-object embedding and object-pointer projection. Their absence tells a
+SAM 2.0 checkpoint (sam2_hiera_*.pt) from a SAM 2.1 one."""
+
+
+def sam2_kind(state: dict) -> tuple[str, str] | None:
+    """("2.0" or "2.1", sam2_model or "") of a SAM 2 state dict, None if it
+    holds no Hiera trunk."""
+    trunk = "image_encoder.trunk."
+    patch = state.get(trunk + "patch_embed.proj.weight")
+    if patch is None or not hasattr(patch, "shape"):
+        return None
+    blocks = {
+        k[len(trunk) :].split(".")[1] for k in state if k.startswith(trunk + "blocks.")
+    }
+    size = SAM2_TRUNKS.get((int(patch.shape[0]), len(blocks)), "")
+    return ("2.1" if all(k in state for k in SAM21_ONLY) else "2.0"), size
 
 
 def build_sam2_model(model_type: str = "tiny", device: str = "cpu") -> Any:
@@ -66,7 +115,8 @@ def load_sam2(
 
 
 class Sam2Points:
-    """sam2's `SAM2ImagePredictor` as the generator's `PointPredictor`."""
+    """sam2's `SAM2ImagePredictor` as the generator's `PointPredictor` (built
+    without hole filling: `max_hole_area` = `max_sprinkle_area` = 0)."""
 
     def __init__(self, predictor: Any):
         self.predictor = predictor
@@ -93,7 +143,8 @@ class Sam2Points:
 
 class Sam2Segmenter(MaskGenerator):
     """SAM 2.1 from `checkpoint` (or `model=`, a built `SAM2Base`); `options` are
-    `MaskGenerator`'s (levels, points_per_side, crop_n_layers, the filters)."""
+    `MaskGenerator`'s (levels, points_per_side, crop_n_layers, the filters,
+    level_order: "area" by default)."""
 
     name = "sam2"
 
@@ -113,14 +164,19 @@ class Sam2Segmenter(MaskGenerator):
         predictor_cls = import_backend("sam2.sam2_image_predictor").SAM2ImagePredictor
         self.predictor = predictor_cls(self.model)
         amg = import_backend("sam2.utils.amg")
+        options.setdefault("level_order", "area")
+        options.setdefault("points_per_batch", default_points_per_batch(device))
         super().__init__(Sam2Points(self.predictor), amg, **options)
 
 
 __all__ = [
+    "SAM21_ONLY",
     "SAM2_MODELS",
+    "SAM2_TRUNKS",
     "Sam2Points",
     "Sam2Segmenter",
     "build_sam2_model",
     "load_sam2",
+    "sam2_kind",
     "sam2_state_dict",
 ]
