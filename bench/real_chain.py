@@ -184,7 +184,7 @@ def growth_exponents() -> dict[str, float]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--photos", type=int, default=100)
-    ap.add_argument("--recipes", nargs="+", default=["full", "photo"],
+    ap.add_argument("--recipes", nargs="*", default=["full", "photo"],
                     choices=list(RECIPES))  # fmt: skip
     ap.add_argument("--precision", default="fp32", choices=["fp32", "bf16", "auto"])
     ap.add_argument("--threads", type=int, default=2)

@@ -336,16 +336,21 @@ def _scene_with(tmp_path, vocab: dict):
 def test_version_5_is_dispatched_and_keyed(scene, tmp_path) -> None:
     from ptovs.encoders import get_encoder, scene_encoder
     from ptovs.encoders.synthetic import SyntheticEncoder
-    from ptovs.stages.extract_features import Config, build_encoder, standin_key
+    from ptovs.stages.extract_features import Config, build_encoder, extra_key
 
     _, ref = _scene_with(tmp_path, scene[1])
     assert isinstance(scene_encoder(tmp_path), v5.SyntheticEncoderV5)
     assert isinstance(build_encoder(Config(), True, tmp_path), v5.SyntheticEncoderV5)
-    assert standin_key(Config(), ref) == {"standin": "5"}
-    assert standin_key(Config(encoder="openclip"), ref) == {}
+    assert extra_key(Config(), ref) == {"standin": "5"}
+    assert extra_key(Config(encoder="openclip"), ref) == {}
     # a version 1 vocabulary keys as it always did
     _, ref1 = _scene_with(tmp_path / "old", {"version": 1})
-    assert standin_key(Config(), ref1) == {}
+    assert extra_key(Config(), ref1) == {}
+    # SAM's generator version keys SAM's and SAM 2.1's features, and only theirs
+    assert extra_key(Config(segmenter="sam2"), ref1) == {"sam_generator": "2"}
+    assert extra_key(Config(segmenter="sam", encoder="openclip"), ref) == {
+        "sam_generator": "2"
+    }
     assert type(get_encoder("synthetic")) is SyntheticEncoder
 
 
@@ -354,10 +359,10 @@ def test_retired_versions_fail_naming_the_file_and_the_fix(
     scene, tmp_path, version
 ) -> None:
     from ptovs.encoders import scene_encoder, standin_version
-    from ptovs.stages.extract_features import Config, standin_key
+    from ptovs.stages.extract_features import Config, extra_key
 
     path, ref = _scene_with(tmp_path, {"version": version, "phrases": {}})
-    for call in (lambda: scene_encoder(tmp_path), lambda: standin_key(Config(), ref)):
+    for call in (lambda: scene_encoder(tmp_path), lambda: extra_key(Config(), ref)):
         with pytest.raises(ValueError) as err:
             call()
         msg = str(err.value)

@@ -644,24 +644,36 @@ def _count(inputs: Inputs, config: Config) -> int:
     return len(inputs.scene.train_views())
 
 
-def standin_key(config: Config, scene_ref) -> dict[str, str]:
-    """A scene written for stand-in version 5 keys its features by it (version 1
-    scenes keep the keys they always had)."""
+SAM_GENERATOR = "2"
+"""The SAM/SAM 2.1 generator's version: 2 equals upstream's generators mask for mask
+and orders SAM 2.1's outputs by area (its features differ from version 1's)."""
+
+
+def extra_key(config: Config, scene_ref) -> dict[str, str]:
+    """What besides the config keys the features: the SAM generator's version for
+    segmenter sam/sam2 (so the other segmenters keep their keys), and the stand-in
+    version of a scene written for version 5 (version 1 scenes keep the keys they
+    always had)."""
+    out = (
+        {"sam_generator": SAM_GENERATOR}
+        if config.segmenter in ("sam", "sam2") and not config.import_dir
+        else {}
+    )
     if config.encoder not in ("auto", "synthetic"):
-        return {}
+        return out
     path = _vocabulary(scene_ref.load().root)
     if path is None:
-        return {}
+        return out
     import json
 
     from ptovs.encoders import standin_version
 
     v = standin_version(json.loads(path.read_text()), path)
-    return {} if v == 1 else {"standin": str(v)}
+    return out if v == 1 else {**out, "standin": str(v)}
 
 
 command = stage_command(
-    NAME, VERSION, Config, Inputs, run, count=_count, extra_key=standin_key
+    NAME, VERSION, Config, Inputs, run, count=_count, extra_key=extra_key
 )
 
 __all__ = [
