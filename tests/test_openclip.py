@@ -722,3 +722,17 @@ def _numbers(obj):
             yield from _numbers(v)
     elif isinstance(obj, (int, float)) and not isinstance(obj, bool):
         yield float(obj)
+
+
+def test_a_torchscript_checkpoint_is_refused_naming_the_state_dict(tmp_path) -> None:
+    """OpenAI's own ViT-*.pt files are TorchScript archives: never executed, refused
+    in one line that names the state dict to take instead; a plain state dict in the
+    same zip format still loads."""
+    from ptovs.encoders.openclip import _state_dict
+
+    net = torch.nn.Linear(2, 2)
+    torch.jit.save(torch.jit.script(net), tmp_path / "ViT-B-16.pt")
+    with pytest.raises(ValueError, match="TorchScript.*open_clip_model.safetensors"):
+        _state_dict(tmp_path / "ViT-B-16.pt")
+    torch.save(net.state_dict(), tmp_path / "plain.pt")
+    assert sorted(_state_dict(tmp_path / "plain.pt")) == ["bias", "weight"]

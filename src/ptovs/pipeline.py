@@ -183,7 +183,7 @@ class Resources:
 # memory fixes); where a `bench` run (80 small photos) peaked higher (uncertainty),
 # that figure. mb_per_photo, for the stages whose memory grows: reconstruct
 # holds its photos and trains a Gaussian per SfM point, 2.9 MB a photo (measured:
-# 3.2, 5.1 and 11.3 GB at 100, 763 and 2,934 photos); train-ae holds its segments'
+# 3.1, 5.1 and 11.3 GB at 100, 763 and 2,934 photos); train-ae holds its segments'
 # features, 1.1 MB a photo between 100 and 763 photos; train-male's lift sums 24.6 KB
 # a Gaussian (3 levels x 4 slots x 512 floats) until it reaches cache_mb (then it
 # makes more passes instead), and the Gaussians follow the photos (55 a photo at

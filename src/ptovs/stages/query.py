@@ -116,7 +116,7 @@ def text_key(config: Config, scene_ref: Any) -> dict[str, str]:
     scene = scene_ref.load()
     keys = {"labels": labels_digest(scene)}
     if encoder_name(config, scene) != "synthetic":
-        return keys  # the checkpoint path is in the config
+        return keys  # the checkpoint (its content digest) keys through the features
     import hashlib
 
     path = Path(scene.root) / "synthetic" / "vocabulary.json"
