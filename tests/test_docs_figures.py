@@ -207,7 +207,7 @@ R = "docs/results.md"
 GROWTH, BIG = "100: s", "763: peak MB"
 GPU, RASTER = "cuda64", "max rel. err"
 SFM, THREADS = "rotation error median", "2 threads"
-ENC, SEG, RECIPE = "crops/s fp32", "s a photo, 8² points", "recipe, MobileCLIP2-S0"
+ENC, SEG = "crops/s fp32", "s a photo, 8² points"
 PEERS = "| tool |"
 SEGMENTERS = "2-D mIoU, best filter"
 
@@ -260,11 +260,6 @@ CLAIMS = [
      lambda: [re.search(r"crops, (\d+) distinct", (ROOT / R).read_text()).group(1)]),
     ("docs/findings.md", rf"At the measured {N} crops/s",
      lambda: [row(R, ENC, "MobileCLIP2-S0")["crops/s fp32"]]),
-    ("docs/findings.md", rf"{N} h with `hier`'s segments",
-     lambda: [row(R, RECIPE, "full, `hier`")["fp32: s a view / h at 763"].split(" / ")[1]]),
-    ("docs/findings.md", rf"bring it to {N} h or {N} h",
-     lambda: [row(R, RECIPE, "full, `hier`")["bf16: s a view / h at 763"].split(" / ")[1],
-              row(R, RECIPE, "photo alone, `hier`")["fp32: s a view / h at 763"].split(" / ")[1]]),
     ("docs/findings.md", rf"halves the photo \({N} s against {N} s\)",
      lambda: [row(R, SEG, "SAM 2.1")["s a photo, 8² points"], row(R, SEG, "SAM ViT-B")["s a photo, 8² points"]]),
     *[("docs/findings.md",
