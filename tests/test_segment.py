@@ -139,12 +139,14 @@ def test_reuse_freed_memory_keeps_freed_tensors_pages():
         return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - start
 
     outside = faults()
-    assert outside > 3 * 10_000  # 16384 pages each
     with reuse_freed_memory():
         faults(4)  # the heap grows to a few such tensors (aligned allocations)
         inside = faults()
-    assert inside < outside / 10
-    assert faults() > outside / 2
+    assert inside < 3 * 16384 / 10  # 16384 pages a tensor: freed pages serve again
+    # glibc's default unmaps each such tensor, unless this process's earlier
+    # allocations already raised its thresholds (other tests ran here first)
+    if outside > 3 * 10_000:
+        assert faults() > outside / 2  # on exit the default is back
 
 
 def test_paint_later_masks_win_and_ids_are_dense():
