@@ -321,3 +321,14 @@ def bench_module(name: str):
         yield mod
     finally:
         sys.path.remove(str(bench))
+
+
+@pytest.fixture
+def toy_commands():
+    """The toy stages (tests/toy_stages.py) as `ptovs` subcommands."""
+    import toy_stages
+    from ptovs.cli import main as cli
+
+    cli.add_command(toy_stages.views_command)
+    cli.add_command(toy_stages.sum_command)
+    yield

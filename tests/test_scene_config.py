@@ -10,15 +10,9 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-import toy_stages
 from ptovs.cli import main as cli
 
-
-@pytest.fixture(autouse=True)
-def _toy_commands():
-    cli.add_command(toy_stages.views_command)
-    cli.add_command(toy_stages.sum_command)
-    yield
+pytestmark = pytest.mark.usefixtures("toy_commands")
 
 
 @pytest.fixture

@@ -19,11 +19,7 @@ from ptovs.cli import main as cli
 TOY = Path(toy_stages.__file__)
 
 
-@pytest.fixture(autouse=True)
-def _toy_commands():
-    cli.add_command(toy_stages.views_command)
-    cli.add_command(toy_stages.sum_command)
-    yield
+pytestmark = pytest.mark.usefixtures("toy_commands")
 
 
 @pytest.fixture
