@@ -42,9 +42,12 @@ def _bin(tmp_path: Path, present: list[str], uid: int, apt: bool = True) -> Path
 
 def _env(**extra: str) -> dict[str, str]:
     """This environment without the variables that require the packages (CI
-    sets CI=true), plus `extra`."""
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("CI", "PTOVS_REQUIRE_SYSTEM_DEPS")}  # fmt: skip
+    sets CI=true) and without an outer make's (the suite runs under `make
+    test`, whose MAKELEVEL makes a nested make print "Entering directory"),
+    plus `extra`."""
+    drop = ("CI", "PTOVS_REQUIRE_SYSTEM_DEPS", "MAKEFLAGS", "MAKELEVEL", "MFLAGS",
+            "MAKEOVERRIDES")  # fmt: skip
+    env = {k: v for k, v in os.environ.items() if k not in drop}
     return env | extra
 
 
@@ -93,7 +96,7 @@ def test_nothing_missing_does_nothing(tmp_path: Path):
 
 def test_make_test_checks_the_packages_first():
     """`make test`'s first step is the script (its line is the run's first)."""
-    out = subprocess.run(["make", "-n", "test", "BIN=/nonexistent"], cwd=ROOT,
+    out = subprocess.run(["make", "--no-print-directory", "-n", "test", "BIN=/nonexistent"], cwd=ROOT,
                          capture_output=True, text=True, timeout=60,
                          env=_env(PYTHON=sys.executable))  # fmt: skip
     assert out.returncode == 0, out.stderr

@@ -466,21 +466,26 @@ def command(
             "view: the viewer needs viser; install it as `make setup` does: pip "
             "install -e '.[view]' && pip install --no-deps viser==1.0.0"
         ) from None
-    session = ViewSession(chain, out_dir)
-    page = Page(session, host, port, heat_width)
-    click.echo(
-        f"view {ref.name}: {page.url}  ({len(session.centers):,} Gaussians,"
-        f" ready in {time.perf_counter() - t0:.1f} s; Ctrl-C stops)"
-    )
     # Ctrl-C (and a TERM) stop the server, even when started with SIGINT ignored
-    # (a background job of a non-interactive shell inherits that)
+    # (a background job of a non-interactive shell inherits that). The handlers
+    # and the try come before the URL is printed: a Ctrl-C sent as soon as the
+    # URL shows (while the server's thread holds the interpreter) still stops
+    # the server cleanly instead of aborting past it.
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, signal.default_int_handler)
+    session = ViewSession(chain, out_dir)
+    page = None
     try:
+        page = Page(session, host, port, heat_width)
+        click.echo(
+            f"view {ref.name}: {page.url}  ({len(session.centers):,} Gaussians,"
+            f" ready in {time.perf_counter() - t0:.1f} s; Ctrl-C stops)"
+        )
         while True:
             time.sleep(3600)
     except KeyboardInterrupt:
         click.echo("view: stopped")
     finally:
-        page.stop()
+        if page is not None:
+            page.stop()
         session.close()
