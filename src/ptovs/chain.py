@@ -40,6 +40,7 @@ from typing import Any
 import click
 from tqdm import tqdm
 
+from ptovs import fit
 from ptovs.artifacts import (
     Artifact,
     ArtifactWriter,
@@ -179,7 +180,10 @@ class Chain:
         if stage not in self._configs:
             spec = get_stage(stage)
             section = self.ctx.section(stage, self.sets.get(stage, ()))
-            self._configs[stage] = build_config(spec.config_cls, section, stage)
+            config = build_config(spec.config_cls, section, stage)
+            # "auto" values: decided from the scene's photos (ptovs.fit), so the
+            # decided value is what the key, the artifact and the log carry
+            self._configs[stage] = fit.resolve(stage, config, self.scene)
         return self._configs[stage]
 
     def upstream_keys(self, stage: str) -> dict[str, str]:

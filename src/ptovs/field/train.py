@@ -62,6 +62,12 @@ class TrainState:
     budget: int = 0
     rounds: list[list[float]] = field(default_factory=list)
     stopped: list[int] = field(default_factory=list)
+    # the plateau stop (`stop = "plateau"`): the loss summed over the current
+    # window [sum, steps], [best window mean, windows without progress], and the
+    # step training ended at (0: not ended early)
+    plateau_window: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    plateau: list[float] = field(default_factory=lambda: [float("inf"), 0.0])
+    ended: int = 0
 
     @property
     def growing(self) -> bool:
@@ -84,6 +90,9 @@ class TrainState:
             "window": list(self.window),
             "rounds": [list(r) for r in self.rounds],
             "stopped": list(self.stopped),
+            "plateau_window": list(self.plateau_window),
+            "plateau": list(self.plateau),
+            "ended": self.ended,
         }
 
 
@@ -170,6 +179,9 @@ def _restore(state: TrainState, saved: dict[str, Any]) -> None:
     state.window = list(saved.get("window", [0.0, 0.0]))
     state.rounds = [list(r) for r in saved.get("rounds", [])]
     state.stopped = [int(x) for x in saved.get("stopped", [])]
+    state.plateau_window = list(saved.get("plateau_window", [0.0, 0.0]))
+    state.plateau = list(saved.get("plateau", [float("inf"), 0.0]))
+    state.ended = int(saved.get("ended", 0))
 
 
 def gaussian_budget(cfg: Any, images: list[np.ndarray]) -> int:
@@ -250,7 +262,7 @@ def train(
     beat = Heartbeat(desc, cfg.iterations, state.step)  # log lines when no bar shows
     last_save = time.monotonic()
     figures: dict[str, str] = {}
-    while state.step < cfg.iterations:
+    while state.step < cfg.iterations and not state.ended:
         step = state.step
         i = view_order(step, n_views, cfg.seed)
         # one photo as float32 at a time (`images` may be a 16-bit PhotoStack)
@@ -298,8 +310,10 @@ def train(
 
         state.step = step = step + 1
         _densify_schedule(cfg, state, step)
+        if getattr(cfg, "stop", "fixed") == "plateau":
+            _plateau_check(cfg, state, step, float(loss.detach()), n_views)
         recent.append((float(loss.detach()), psnr(pred.detach().clamp(0, 1), gt)))
-        if step % LOG_EVERY == 0 or step == cfg.iterations:
+        if step % LOG_EVERY == 0 or step == cfg.iterations or state.ended:
             lo, ps = np.mean([r[0] for r in recent]), np.mean([r[1] for r in recent])
             recent.clear()
             state.seconds = time.perf_counter() - t_start
@@ -315,9 +329,13 @@ def train(
         beat(step, **figures)
         # checkpoint every `checkpoint_every` steps, and after CHECKPOINT_S seconds
         # without one (a slow or busy machine would otherwise lose much)
-        if step < cfg.iterations and (
-            step % cfg.checkpoint_every == 0
-            or time.monotonic() - last_save > CHECKPOINT_S
+        if (
+            step < cfg.iterations
+            and not state.ended
+            and (
+                step % cfg.checkpoint_every == 0
+                or time.monotonic() - last_save > CHECKPOINT_S
+            )
         ):
             state.seconds = time.perf_counter() - t_start
             save(state.to_dict())
@@ -402,6 +420,50 @@ def _densify_schedule(cfg: Any, state: TrainState, step: int) -> None:
         state.grad_denom = torch.zeros(len(model))
     if step % cfg.opacity_reset_every == 0:
         model.reset_opacity()
+
+
+PLATEAU_WINDOW = (50, 200)
+"""The plateau stop's window: one pass over the train photos, at least 50 and at
+most 200 steps (a window's mean loss then covers the same photos each time, up to
+200 photos)."""
+
+
+def plateau_window(n_views: int) -> int:
+    """Steps in one window of the plateau stop for `n_views` train photos."""
+    return int(min(max(n_views, PLATEAU_WINDOW[0]), PLATEAU_WINDOW[1]))
+
+
+def _plateau_check(
+    cfg: Any, state: TrainState, step: int, loss: float, n_views: int
+) -> None:
+    """The plateau stop: once densification is over (the Gaussians are settled),
+    the training loss is averaged over windows of `plateau_window` steps; a
+    window whose mean does not beat the best by the factor (1 − `stop_rel`) is a
+    window without progress, and after `stop_patience` of them in a row training
+    ends (`state.ended`). Reads losses only: deterministic, and resumable from the
+    state's counters."""
+    until = min(cfg.densify_until, int(0.6 * cfg.iterations))
+    if step <= until:
+        return
+    state.plateau_window[0] += loss
+    state.plateau_window[1] += 1.0
+    if (step - until) % plateau_window(n_views):
+        return
+    mean = state.plateau_window[0] / max(state.plateau_window[1], 1.0)
+    state.plateau_window = [0.0, 0.0]
+    best, bad = state.plateau
+    if mean < best * (1.0 - cfg.stop_rel):
+        state.plateau = [mean, 0.0]
+        return
+    state.plateau = [best, bad + 1.0]
+    if bad + 1 >= cfg.stop_patience:
+        state.ended = step
+        log.info(
+            "step %d: the loss has stopped improving (window mean %.5f, best %.5f, "
+            "%d windows of %d steps without a %.1f %% gain): training ends",
+            step, mean, best, cfg.stop_patience, plateau_window(n_views),
+            100 * cfg.stop_rel,
+        )  # fmt: skip
 
 
 GROWTH_SPAN = 1.25  # compare rounds at least this factor apart in Gaussian count

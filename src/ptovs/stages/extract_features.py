@@ -93,7 +93,9 @@ class Config:
     """segmenter "sam": vit_h, vit_l or vit_b."""
     sam2_model: str = "tiny"
     """segmenter "sam2": SAM 2.1 tiny, small, base_plus or large."""
-    sam_points_per_side: int = 32
+    sam_points_per_side: int | Literal["auto"] = 32
+    """SAM's prompt grid, points a side; "auto": one every 64 px of the working
+    short side, 8 to 32 (ptovs.fit)."""
     sam_crop_n_layers: int = 1
     encoder: Literal["auto", "synthetic", "openclip"] = "auto"
     """"auto": the stand-in on synthetic scenes, OpenCLIP elsewhere."""
@@ -116,9 +118,13 @@ class Config:
     crop_size: int = 0
     """Crop side in pixels; 0: the encoder's own input size (224 for the
     stand-in and ViT-B, 256 for MobileCLIP)."""
-    images: Literal["all", "orig"] = "all"
-    """"all": the original and every render; "orig": originals only (then the
-    stage does not depend on reconstruct: LangSplat's recipe on any geometry)."""
+    images: Literal["all", "orig+self", "orig", "auto"] = "all"
+    """"all": the original and every render; "orig+self": the original and its
+    self render (U_T without the novel appearances: 2 images a view instead of
+    N + 1); "orig": originals only (then the stage does not depend on reconstruct:
+    LangSplat's recipe on any geometry); "auto": "all" only where the encoder's
+    features of a segment move with the novel appearances, measured on a few
+    views first (`ptovs.fit.appearance_sensitivity`), else "orig+self"."""
     import_dir: str = ""
     """A LangSplat feature folder to read instead of segmenting and encoding."""
     segment: Literal["each", "once"] = "each"
@@ -139,9 +145,9 @@ class Config:
 class Inputs:
     scene: Any = scene_input()
     renders: Artifact | None = upstream(
-        "render-appearances", when=lambda c: c.images == "all"
+        "render-appearances", when=lambda c: c.images != "orig"
     )
-    """Only for images = "all": originals alone depend on the photos, not the field."""
+    """Not for images = "orig": originals alone depend on the photos, not the field."""
 
 
 def build_segmenter(config: Config, scene_root: Path | None = None) -> Segmenter:
@@ -519,10 +525,8 @@ def run(
         if inputs.renders is not None
         else []
     )
-    apps = ["orig"] + (slots if config.images == "all" else [])
     novel = [s for s in slots if s != "self"]
-    # the image a view is segmented from when segment = "once"
-    source = "self" if config.segment_from == "self" and "self" in apps else "orig"
+    images = config.images
     importing = bool(config.import_dir)
     views = scene.train_views()
     if importing:
@@ -541,6 +545,20 @@ def run(
             return cut0, img0
 
         precision = decide_precision(encoder, notes, first_view, side)
+    probe = None
+    if images == "auto" and importing:  # imported features: whatever the folder has
+        images = "all"
+    if images == "auto":
+        probe = decide_images(
+            notes, novel, lambda: _probe_views(
+                scene, views, inputs.renders, slots, segmenter, encoder, config, side
+            ),
+        )  # fmt: skip
+        images = probe["images"]
+    apps = ["orig"] + {"all": slots, "orig+self": ["self"], "orig": []}[images]
+    apps = [a for a in apps if a == "orig" or a in slots]
+    # the image a view is segmented from when segment = "once"
+    source = "self" if config.segment_from == "self" and "self" in apps else "orig"
     # views with no segment at any level: kept in the notes, so a resumed run
     # counts the whole artifact's (a view redone after a kill is counted once)
     empty = set(notes.get("empty_views", [])) if notes is not None else set()
@@ -603,6 +621,8 @@ def run(
                 {
                     "levels": list(levels),
                     "apps": apps,
+                    "images": images,
+                    "images_probe": probe,
                     "segmenter": "import" if importing else config.segmenter,
                     "segment": None
                     if importing
@@ -622,6 +642,61 @@ def run(
             )
         },
     )
+
+
+PROBE_VIEWS = 4
+"""Views the images = "auto" probe encodes under every appearance (evenly spaced)."""
+
+
+def _probe_views(
+    scene, views, renders, slots, segmenter, encoder, config: Config, side: int
+) -> list[tuple[np.ndarray, list[np.ndarray]]]:
+    """Per probe view: the self render's segment features and each novel
+    render's features of the same segments (one cut, every image cropped by it),
+    as row-aligned [n, D] tables."""
+    novel = [s for s in slots if s != "self"]
+    step = max(1, len(views) // PROBE_VIEWS)
+    out = []
+    for v in views[::step][:PROBE_VIEWS]:
+        rgb = renders[v.name]["rgb"]
+        own = rgb[slots.index("self")]
+        cut = _cut_levels(segmenter, v.stem, "self", own, config.min_crop_px)
+        if not any(lv.n > 0 for lv in cut):
+            continue
+        shared = _Cut(check_levels(config.levels), cut)
+
+        def table(img: np.ndarray, shared: _Cut = shared) -> np.ndarray:
+            f = image_features(img, shared, encoder, config.batch_size, side)
+            return np.asarray(f.table, np.float32)
+
+        out.append((table(own), [table(rgb[slots.index(a)]) for a in novel]))
+    return out
+
+
+def decide_images(
+    notes: Notes | None, novel: list[str], probe: Callable[[], list]
+) -> dict[str, Any]:
+    """images = "auto": "all" when the novel appearances move the encoder's
+    features (`ptovs.fit.appearance_sensitivity` above `fit.SENSITIVITY`), else
+    "orig+self"; with no novel appearance, "orig+self" without a probe. Made once
+    per artifact (kept in `notes`, so a resumed run encodes the same images) and
+    logged in one line with its evidence."""
+    from ptovs import fit
+
+    report = None if notes is None else notes.get("images")
+    if report is not None:
+        log.info("images: %s, as chosen when this artifact was begun", report["images"])
+        return report
+    if not novel:
+        report = {"images": "orig+self", "why": "no novel appearance rendered"}
+    else:
+        report = fit.images_decision(probe())
+    log.info(
+        "extract-features: images = %s (auto: %s)", report["images"], report["why"]
+    )
+    if notes is not None:
+        notes.put("images", report)
+    return report
 
 
 def _note_empty(name: str, empty: set[str], notes: Notes | None) -> None:

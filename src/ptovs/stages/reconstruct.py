@@ -51,8 +51,9 @@ between the two cuts with the best F1 on bench seed 0, 0.20 and 0.25 (docs/findi
 
 @dataclass(frozen=True)
 class Config:
-    wild: bool = True
-    """In-the-wild model (f_α, f_β, f_γ); false = plain 3DGS with the same budget."""
+    wild: bool | Literal["auto"] = True
+    """In-the-wild model (f_α, f_β, f_γ); false = plain 3DGS with the same budget;
+    "auto": in the wild only when the photos' appearance differs (ptovs.fit)."""
     preset: Literal["cpu", "authors"] = "cpu"
     """Network sizes: "cpu" (64² inputs, narrow) or "authors" (their exact layers)."""
     mask_concat: Literal["features", "input"] = "features"
@@ -77,6 +78,16 @@ class Config:
     ±0.28); shading: the factor on its linear map's output (its step size)."""
     sh_degree: int = 3
     iterations: int = 2500
+    """Training steps (one photo each); the upper bound when `stop = "plateau"`."""
+    stop: Literal["fixed", "plateau"] = "fixed"
+    """"fixed": every iteration; "plateau": end once densification is over and
+    the training loss, averaged over one pass over the photos (50 to 200 steps),
+    has not improved by `stop_rel` for `stop_patience` passes in a row."""
+    stop_rel: float = 0.005
+    """Plateau: a pass counts as progress if its mean loss beats the best by this
+    fraction."""
+    stop_patience: int = 2
+    """Plateau: passes without progress before training ends."""
     seed: int = 0
     ssim_lambda: float = 0.2
     mask_reg: float = 0.3
@@ -192,9 +203,11 @@ def _trained(
         "gaussians": len(model),
         "gaussian_budget": state.budget,
         "train_seconds": round(state.seconds, 2),
-        "seconds_per_iteration": round(state.seconds / max(config.iterations, 1), 4),
-        "iterations": config.iterations,
+        "seconds_per_iteration": round(state.seconds / max(state.step, 1), 4),
+        "iterations": state.step,
     }
+    if state.ended:  # the plateau stop ended training here
+        metrics["stopped_early_at"] = state.ended
     if state.stopped:  # the adaptive budget stopped growth here
         metrics["growth_stopped_step"], metrics["growth_stopped_gaussians"] = (
             state.stopped

@@ -45,8 +45,9 @@ VERSION = 1 + 100 * RASTER_VERSION
 
 @dataclass(frozen=True)
 class Config:
-    n_appearances: int = 4
-    """N: N−1 novel appearances plus the self appearance (Table 4 explores 2–6)."""
+    n_appearances: int | Literal["auto"] = 4
+    """N: N−1 novel appearances plus the self appearance (Table 4 explores 2–6);
+    "auto": 1 when the photos share one appearance, else 4 (ptovs.fit)."""
     targets: str | tuple[str, ...] = "auto"
     """"auto" (the paper's ids on the seven PT-OVS scenes, else "select"), "paper",
     "select", "same" (every novel slot uses the view's own embedding: Table 4's
