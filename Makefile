@@ -60,7 +60,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # column, a tiled roof; what it selects is in docs/results.md, "The demo")
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo pictures view test system-deps test-slurm lint format bench bench-accuracy bench-encoders bench-real-chain bench-standin bench-multiapp bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
+.PHONY: setup demo pictures view test system-deps test-slurm lint format bench bench-accuracy bench-speed-error bench-encoders bench-real-chain bench-standin bench-multiapp bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
 
 # where torch and torchvision come from: PyTorch's CPU index by default (PyPI's Linux
 # torch is the CUDA build, several GB); with an NVIDIA GPU give its CUDA index, e.g.
@@ -166,10 +166,20 @@ bench-peers: setup
 ACC_SEEDS ?= 0-17
 bench-accuracy: setup
 	$(BIN)/python bench/accuracy.py --preset small --seeds $(ACC_SEEDS) \
-	  --data $(QDATA)/accuracy --work $(QWORK)/accuracy --plot docs/img/speed_vs_miou.png
+	  --data $(QDATA)/accuracy --work $(QWORK)/accuracy
 	$(BIN)/python bench/select3d.py --seeds 0-8 --data $(QDATA)/accuracy --work $(QWORK)/accuracy
 	$(BIN)/python bench/select3d.py --seeds 9-17 --data $(QDATA)/accuracy --work $(QWORK)/accuracy
 	$(BIN)/python bench/style_seeds.py --seeds $(ACC_SEEDS) --data $(QDATA)/accuracy --work $(QWORK)/accuracy
+
+# speed against error, one front per question: every recipe's whole chain against
+# mIoU (the accuracy instrument: dev seeds 0-8 choose, test seeds 9-17 report) and
+# reconstruct against held-out PSNR (bench seed 0, herzjesu_p8, fountain_p11, 500
+# steps); raw CSVs under docs/results/, the picture docs/img/speed_error.png. Resumes
+# where a killed run stopped; about 3 h from scratch
+bench-speed-error: setup
+	$(BIN)/python bench/speed_error.py --acc-data $(QDATA)/accuracy --acc-work $(QWORK)/accuracy \
+	  --real $(REAL) --data $(QDATA)/speed_error --work $(QWORK)/speed_error \
+	  --recon-json $(QWORK)/speed_error/reconstruct.json
 
 # the stand-in encoder's failure profile against CLIP's: calibration seeds only,
 # crops only, no method measured (STANDIN_VERSION=1 for the original stand-in)

@@ -130,6 +130,26 @@ CHAIN_LABELS.update({
     **{f"male-min-crop-{px}": ("male", {"extract-features": [f"min_crop_px={px}"]})
        for px in (16, 32)},
 })  # fmt: skip
+
+
+# the recipes of the speed-against-error front (bench/speed_error.py): the
+# scene-fitted recipe (configs/auto.toml's values over this instrument's config),
+# the full method on plain-3DGS geometry, and two Gaussian budgets
+def _auto_sets() -> dict[str, list[str]]:
+    import tomllib
+
+    with open(ROOT / "configs" / "auto.toml", "rb") as f:
+        auto = tomllib.load(f)
+    return {stage: [f"{k}={json.dumps(v)}" for k, v in items.items()]
+            for stage, items in auto.items() if stage != "scene"}  # fmt: skip
+
+
+CHAIN_LABELS.update({
+    "auto": ("male", _auto_sets()),
+    "plain": ("male", {"reconstruct": ["wild=false"]}),
+    **{f"gauss-{k}k": ("male", {"reconstruct": [f"max_gaussians={k * 1000}"]})
+       for k in (3, 5)},
+})  # fmt: skip
 # measured only when asked for (--labels), kept out of the default run so that
 # `make bench-accuracy` stays within its time: Table 3 row 3, the code-space lift,
 # and Table 3 and 4 rows under truth segments (`make bench-multiapp`)
@@ -137,7 +157,7 @@ OPTIONAL_LABELS = (
     "no-uncertainty-ae", "lift-codes", "male-truth", "langsplat-truth",
     "no-multi-appearance-truth", "same-appearance-truth", "select-random-truth",
     "male-segment-once", "male-segment-once-orig", "male-min-crop-16",
-    "male-min-crop-32",
+    "male-min-crop-32", "auto", "plain", "gauss-3k", "gauss-5k",
 )  # fmt: skip
 CHAIN_LABELS.update({v: (v, {}) for v in ("no-uncertainty-ae", "lift-codes")})
 FEATURE_LABELS = ("2d", "2d-ae", "2d-nosmooth", "2d-best", "2d-truth")
