@@ -262,14 +262,15 @@ def picture(chain: list[dict], recon: list[dict], path: Path) -> None:
             for a, b in zip(front, front[1:], strict=False):
                 cv2.line(img, px(np.log10(max(a[xkey], 1)), a[ykey]),
                          px(np.log10(max(b[xkey], 1)), b[ykey]), col, 1, cv2.LINE_AA)  # fmt: skip
-            for r in sub:
+            for k, r in enumerate(sub):
                 p = px(np.log10(max(r[xkey], 1)), r[ykey])
                 if lo:
                     cv2.line(img, px(np.log10(max(r[xkey], 1)), r[lo]),
                              px(np.log10(max(r[xkey], 1)), r[hi]), col, 1)  # fmt: skip
                 cv2.circle(img, p, 5 if r.get("on_front") else 3, col, -1, cv2.LINE_AA)
                 label = r["recipe"] + ("" if len(groups) == 1 else f" ({g})")
-                cv2.putText(img, label, (p[0] + 7, p[1] - 4), font, 0.38, col, 1,
+                # labels of near points stacked, not drawn over each other
+                cv2.putText(img, label, (p[0] + 7, p[1] - 4 + 13 * (k % 3)), font, 0.38, col, 1,
                             cv2.LINE_AA)  # fmt: skip
 
     panel(m + 20, chain, "chain_s", "miou", lambda r: "test seeds",
