@@ -634,7 +634,9 @@ def test_page_in_a_real_browser(session, tmp_path):
 
 
 @pytest.mark.parametrize("ask_first", [True, False], ids=["after-requests", "at-once"])
-def test_view_command_prints_the_url_and_stops_on_ctrl_c(view_work, tiny_scene_dir, ask_first):
+def test_view_command_prints_the_url_and_stops_on_ctrl_c(
+    view_work, tiny_scene_dir, ask_first
+):
     """Ctrl-C stops the server cleanly (exit 0, "view: stopped"), also when it
     comes the moment the URL shows (it once arrived before the handler's try
     and click aborted with exit 1)."""
