@@ -150,7 +150,7 @@ def recon_point(work: Path, scene: Path, recipe: str, iterations: int) -> dict:
     path = Path(out.strip().splitlines()[-1].split(": ", 1)[1])
     with Artifact(path) as a:
         m = read_json_dataset(a.root()["metrics_json"])
-        cfg = json.loads(a.attrs["config_json"]) if "config_json" in a.attrs else {}
+        cfg = json.loads(a.attrs["config_json"])  # every artifact stores its config
         secs = float(json.loads(a.attrs["timings_json"])["run_s"])
     return {
         "recipe": recipe,

@@ -173,7 +173,7 @@ def photo_evidence(scene: Any, seed: int = 0) -> dict[str, Any]:
 def cached_evidence(scene_ref: Any) -> dict[str, Any]:
     """`photo_evidence` of the scene, cached in `<work>/<scene>/fit.json` by the
     scene's content key (nothing is written under `ptovs.keys.read_only`)."""
-    from ptovs.atomic import atomic_file
+    from ptovs.artifacts import write_atomic
     from ptovs.keys import READ_ONLY
 
     key = scene_ref.key()
@@ -186,12 +186,8 @@ def cached_evidence(scene_ref: Any) -> dict[str, Any]:
         pass
     evidence = photo_evidence(scene_ref.load())
     if not READ_ONLY.get():
-        path.parent.mkdir(parents=True, exist_ok=True)
-        text = json.dumps(
-            {"version": EVIDENCE_VERSION, "scene_key": key, "evidence": evidence}
-        )
-        with atomic_file(path, keep_suffix=False) as tmp:
-            tmp.write_text(text)
+        blob = {"version": EVIDENCE_VERSION, "scene_key": key, "evidence": evidence}
+        write_atomic(path, json.dumps(blob))
     return evidence
 
 

@@ -381,9 +381,7 @@ def _accumulate_grads(
 
 def _densify_schedule(cfg: Any, state: TrainState, step: int) -> None:
     model = state.model
-    # densification (and the opacity reset that goes with it) ends by 60 % of the
-    # run at the latest, so the last iterations always refine a settled set
-    until = min(cfg.densify_until, int(0.6 * cfg.iterations))
+    until = densify_end(cfg)
     if until <= step or step < cfg.densify_from:
         return
     if step % cfg.densify_every == 0:
@@ -422,6 +420,13 @@ def _densify_schedule(cfg: Any, state: TrainState, step: int) -> None:
         model.reset_opacity()
 
 
+def densify_end(cfg: Any) -> int:
+    """The step densification ends at: `densify_until`, and by 60 % of the run at
+    the latest (with the opacity reset that goes with it), so the last iterations
+    always refine a settled set."""
+    return min(cfg.densify_until, int(0.6 * cfg.iterations))
+
+
 PLATEAU_WINDOW = (50, 200)
 """The plateau stop's window: one pass over the train photos, at least 50 and at
 most 200 steps (a window's mean loss then covers the same photos each time, up to
@@ -442,7 +447,7 @@ def _plateau_check(
     window without progress, and after `stop_patience` of them in a row training
     ends (`state.ended`). Reads losses only: deterministic, and resumable from the
     state's counters."""
-    until = min(cfg.densify_until, int(0.6 * cfg.iterations))
+    until = densify_end(cfg)
     if step <= until:
         return
     state.plateau_window[0] += loss

@@ -556,7 +556,6 @@ def run(
         )  # fmt: skip
         images = probe["images"]
     apps = ["orig"] + {"all": slots, "orig+self": ["self"], "orig": []}[images]
-    apps = [a for a in apps if a == "orig" or a in slots]
     # the image a view is segmented from when segment = "once"
     source = "self" if config.segment_from == "self" and "self" in apps else "orig"
     # views with no segment at any level: kept in the notes, so a resumed run
