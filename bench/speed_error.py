@@ -17,7 +17,8 @@ Two questions, two fronts:
    recipe, excluded) against held-out PSNR (the held-out photos as they are),
    per scene: bench seeds (synthetic, changing light and occluders),
    herzjesu_p8 and fountain_p11 (real, from the photos alone). Recipes: the
-   in-the-wild model (`wild`), plain 3DGS (`plain`), the scene-fitted reconstruct
+   in-the-wild model (`wild`), plain 3DGS (`plain`), the colour rung (`colour`:
+   plain 3DGS with a photo-wide colour map and sky), the scene-fitted reconstruct
    (`auto`: `wild = "auto"`, `stop = "plateau"`) and, on the bench seeds, two
    Gaussian budgets of the wild model (`wild-10k`, `wild-5k`), all at
    `--iterations` steps.
@@ -52,6 +53,7 @@ CHAIN_RECIPES = {
 RECON_RECIPES = {
     "wild": [],
     "plain": ["reconstruct.wild=false"],
+    "colour": ['reconstruct.wild="colour"'],
     "auto": ['reconstruct.wild="auto"', 'reconstruct.stop="plateau"'],
     "wild-10k": ["reconstruct.max_gaussians=10000"],
     "wild-5k": ["reconstruct.max_gaussians=5000"],

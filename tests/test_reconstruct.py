@@ -312,6 +312,36 @@ def test_plain_3dgs_same_code(tmp_path, tiny_scene_dir):
     assert field.nets is None and field.metrics["psnr_train"] > 12
 
 
+def test_colour_rung_is_a_plain_field_with_a_photo_wide_map(tmp_path, tiny_scene_dir):
+    """wild = "colour": no f_α, f_β or f_γ and no per-Gaussian embedding; each
+    photo's embedding is its colour statistics, which change the render through
+    the colour map and the sky; the stored field loads and renders as trained,
+    and render-appearances runs on it."""
+    from conftest import run_cli
+
+    work = tmp_path / "w"
+    sets = ['--set=reconstruct.wild="colour"', "--set=reconstruct.iterations=150"]
+    for stage in ("reconstruct", "render-appearances"):
+        run_cli(work, *sets, stage, "--data", str(tiny_scene_dir))
+    (path,) = (work / "tiny_s0" / "reconstruct").glob("*.h5")
+    with Artifact(path) as art:
+        root = art.root()
+        nets = sorted(k for k in root if k.startswith("net."))
+        assert nets and all(k.startswith(("net.sky.", "net.f_map.")) for k in nets)
+        assert "app_embed" not in root and "background" not in root
+        embs = {n: art[n]["embedding"][...] for n in art.names()}
+        assert all(e.shape == (N_STATS,) for e in embs.values())
+        field = WildField.from_artifact(art)
+    assert field.wild and not field.nets.learned and field.gauss_embed is None
+    assert field.metrics["psnr_train"] > 12
+    assert field.nets.transient(torch.zeros(1, 3, 64, 64)) is None
+    a, b = (torch.from_numpy(e) for e in list(embs.values())[:2])
+    cam = Camera.from_view(load_scene(tiny_scene_dir).views[0])
+    ra, rb = field.render(cam, a[None])[0], field.render(cam, b[None])[0]
+    assert torch.isfinite(ra).all() and not torch.equal(ra, rb)
+    assert list((work / "tiny_s0" / "render-appearances").glob("*.h5"))
+
+
 def test_two_runs_train_the_same_field_bitwise(tmp_path, tiny_scene_dir, tiny_run):
     """Same scene, config and thread count: the same bits (the compiled backward
     gives tiles to threads round-robin and sums their slices in thread order)."""

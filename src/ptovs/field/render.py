@@ -83,7 +83,12 @@ def gaussian_colors(
     gauss: Tensor | None = None,  # [N, G] per-Gaussian embeddings (affine, shading)
 ) -> Tensor:
     """RGB [N, 3] of every Gaussian seen from `cam`, with ΔSH when nets are given."""
-    if nets is not None and embedding is not None and means.shape[0]:
+    if (
+        nets is not None
+        and nets.f_gamma is not None
+        and embedding is not None
+        and means.shape[0]
+    ):
         # PE(μ) sees detached positions: ΔSH must not drag geometry around
         if visible_only:
             idx = torch.nonzero(in_frustum(means.detach(), cam)).squeeze(1)
@@ -309,6 +314,7 @@ class WildField:
                 else cfg.get("appearance", "delta-sh"),
                 color_map="f_map.weight" in state,
                 stats=bool(cfg.get("image_stats", False)) and not cfg.get("import_dir"),
+                learned=any(k.startswith("f_alpha.") for k in state),
             )
             nets.load_state_dict(state)
             nets.eval()

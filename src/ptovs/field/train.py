@@ -120,6 +120,7 @@ def _new_state(
             appearance=cfg.appearance,
             color_map=cfg.color_map,
             stats=cfg.image_stats,
+            learned=cfg.wild != "colour",
         )
     model = GaussianModel.from_points(
         points[0],
@@ -130,16 +131,17 @@ def _new_state(
         embed_dim=nets.gauss_dim if nets is not None else 0,
     )
     if nets is not None:
+        groups = [
+            (nets.f_alpha, cfg.lr_alpha),
+            (nets.f_beta, cfg.lr_beta),
+            (nets.f_gamma, cfg.lr_gamma),
+            (nets.sky, cfg.lr_alpha),
+        ]  # the colour rung has the sky and the map alone
         nets_opt = torch.optim.Adam(
-            [
-                {"params": nets.f_alpha.parameters(), "lr": cfg.lr_alpha},
-                {"params": nets.f_beta.parameters(), "lr": cfg.lr_beta},
-                {"params": nets.f_gamma.parameters(), "lr": cfg.lr_gamma},
-                {"params": nets.sky.parameters(), "lr": cfg.lr_alpha},
-            ]
+            [{"params": m.parameters(), "lr": lr} for m, lr in groups if m is not None]
             + (
                 [{"params": nets.map_parameters(), "lr": cfg.lr_gamma}]
-                if cfg.color_map
+                if nets.f_map is not None
                 else []
             ),
             fused=True,  # the nets' ~60 small tensors in one kernel, not a loop
@@ -274,8 +276,10 @@ def train(
         emb, mask_lo = None, None
         if nets is not None:
             a_in, b_in = prepared[i]
-            mask_lo = nets.transient(b_in[None])  # [1, 1, s, s]
-            emb = nets.embed(a_in[None], mask_lo.detach())[0]
+            mask_lo = nets.transient(b_in[None])  # [1, 1, s, s]; None: no f_β
+            emb = nets.embed(a_in[None], None if mask_lo is None else mask_lo.detach())[
+                0
+            ]
         g = model.gaussians()
         cols = gaussian_colors(
             g.means,

@@ -22,6 +22,11 @@ Two presets with the same structure: `authors` (exactly the released layer sizes
 docs/findings.md for what it loses at equal iterations). The sky head
 (`SkyNet`, `WildNets.background`) is ours: the authors render on black, which leaves
 the sky to floaters; with an imported model it is absent and the background is black.
+
+`learned=False` is the colour rung between plain 3DGS and the full model: no f_α,
+f_β or f_γ; a photo's embedding is its fixed colour statistics alone, and it drives
+the sky head and the photo-wide colour map. It models exposure, tint and sky, not
+occluders or light that changes across a surface, at about a plain field's cost.
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ from ptovs.raster import SH_C0
 
 APPEARANCES = ("delta-sh", "affine", "shading")
 GAUSS_DIM = 16  # per-Gaussian embedding of the affine and shading appearances
+SKY_STRIDE = 4  # the colour rung evaluates its sky once per 4 × 4 pixels
 
 
 @dataclass(frozen=True)
@@ -401,28 +407,39 @@ class WildNets(nn.Module):
         appearance: str = "delta-sh",
         color_map: bool = False,
         stats: bool = False,
+        learned: bool = True,
     ):
         super().__init__()
         self.preset = PRESETS[preset] if isinstance(preset, str) else preset
         p = self.preset
         if p.beta_res % 2 ** (len(p.beta_widths) - 1):
             raise ValueError("beta_res must be divisible by 2**(len(beta_widths) - 1)")
-        self.f_alpha = AppearanceEncoder(p.alpha_widths, p.embed_dim, mask_concat)
-        self.f_beta = TransientNet(p.beta_widths)
         if appearance not in APPEARANCES:
             raise ValueError(f"appearance must be one of {APPEARANCES}: {appearance!r}")
+        self.learned = bool(learned)
         self.appearance = appearance
-        self.stats = bool(stats)
-        d = p.embed_dim + (N_STATS if stats else 0)  # what f_γ, sky and map see
-        if appearance == "affine":
-            self.f_gamma = AffineColorNet(d, GAUSS_DIM, 2 * p.gamma_width)
-        elif appearance == "shading":
-            self.f_gamma = ShadingColorNet(d, GAUSS_DIM, delta_scale)
-        else:
-            self.f_gamma = ColorNet(n_coeffs, p, delta_scale, d)
+        # the colour rung: the statistics are the whole embedding, the map its use
+        self.stats = bool(stats) or not self.learned
+        color_map = bool(color_map) or not self.learned
+        self.f_alpha: AppearanceEncoder | None = None
+        self.f_beta: TransientNet | None = None
+        self.f_gamma: nn.Module | None = None
+        d = (p.embed_dim if self.learned else 0) + (N_STATS if self.stats else 0)
+        if self.learned:
+            self.f_alpha = AppearanceEncoder(p.alpha_widths, p.embed_dim, mask_concat)
+            self.f_beta = TransientNet(p.beta_widths)
+            if appearance == "affine":
+                self.f_gamma = AffineColorNet(d, GAUSS_DIM, 2 * p.gamma_width)
+            elif appearance == "shading":
+                self.f_gamma = ShadingColorNet(d, GAUSS_DIM, delta_scale)
+            else:
+                self.f_gamma = ColorNet(n_coeffs, p, delta_scale, d)
+            nn.init.zeros_(self.f_gamma.out.weight)  # ΔSH = 0 at the start
+            nn.init.zeros_(self.f_gamma.out.bias)
         self.sky = SkyNet(d) if background else None
-        nn.init.zeros_(self.f_gamma.out.weight)  # ΔSH = 0 at the start
-        nn.init.zeros_(self.f_gamma.out.bias)
+        # the colour rung's sky at a quarter of the resolution: a smooth function of
+        # the direction, and per pixel it would cost the rung as much as f_α and f_β
+        self.sky_stride = 1 if self.learned else SKY_STRIDE
         self.f_map = nn.Linear(d, 12) if color_map else None
         if self.f_map is not None:  # the identity map at the start
             nn.init.zeros_(self.f_map.weight)
@@ -431,7 +448,9 @@ class WildNets(nn.Module):
     @property
     def embed_dim(self) -> int:
         """Length of an image's embedding (learned part + fixed statistics)."""
-        return self.preset.embed_dim + (N_STATS if self.stats else 0)
+        return (self.preset.embed_dim if self.learned else 0) + (
+            N_STATS if self.stats else 0
+        )
 
     def prepare(self, image: np.ndarray) -> tuple[Tensor, Tensor]:
         """RGB [H, W, 3] in [0, 1] -> (f_α input [3, S, S], f_β input [3, s, s])."""
@@ -441,12 +460,14 @@ class WildNets(nn.Module):
             out.append(torch.from_numpy(np.ascontiguousarray(small)).permute(2, 0, 1))
         return out[0].float(), out[1].float()
 
-    def transient(self, beta_in: Tensor) -> Tensor:
-        """[B, 3, s, s] -> M [B, 1, s, s]."""
-        return self.f_beta(beta_in)
+    def transient(self, beta_in: Tensor) -> Tensor | None:
+        """[B, 3, s, s] -> M [B, 1, s, s] (None for the colour rung: no f_β)."""
+        return None if self.f_beta is None else self.f_beta(beta_in)
 
-    def embed(self, alpha_in: Tensor, mask: Tensor) -> Tensor:
+    def embed(self, alpha_in: Tensor, mask: Tensor | None) -> Tensor:
         """[B, 3, S, S] and M [B, 1, s, s] -> l [B, D] (f_α, then the statistics)."""
+        if self.f_alpha is None:
+            return image_stats(alpha_in)
         learned = self.f_alpha(alpha_in, mask)
         if not self.stats:
             return learned
@@ -459,7 +480,15 @@ class WildNets(nn.Module):
         """
         if self.sky is None:
             return dirs.new_zeros(dirs.shape)
-        return self.sky(dirs, embedding)
+        s = self.sky_stride
+        if s == 1 or dirs.ndim != 3 or min(dirs.shape[:2]) < 2 * s:
+            return self.sky(dirs, embedding)
+        # mean direction of each s × s block, the sky there, bilinear back up
+        grid = dirs.permute(2, 0, 1)[None]
+        small = F.normalize(F.avg_pool2d(grid, s, ceil_mode=True), dim=1)
+        sky = self.sky(small[0].permute(1, 2, 0), embedding).permute(2, 0, 1)[None]
+        full = F.interpolate(sky, size=dirs.shape[:2], mode="bilinear")
+        return full[0].permute(1, 2, 0)
 
     def color_matrix(self, embedding: Tensor) -> tuple[Tensor, Tensor] | None:
         """The image's colour map (M [3, 3], t [3]): colour -> M·colour + t, or None.
@@ -490,13 +519,18 @@ class WildNets(nn.Module):
     @property
     def gauss_dim(self) -> int:
         """Width of the per-Gaussian embedding the appearance needs (0: none)."""
+        if self.f_gamma is None:
+            return 0
         return GAUSS_DIM if self.appearance in ("affine", "shading") else 0
 
     def delta_sh(
         self, sh: Tensor, means: Tensor, embedding: Tensor, gauss: Tensor | None = None
     ) -> Tensor:
         """ΔSH [n, K, 3] for n Gaussians under embedding [D]; `gauss` [n, G] are
-        the per-Gaussian embeddings (needed by the affine and shading appearances)."""
+        the per-Gaussian embeddings (needed by the affine and shading appearances);
+        zeros for the colour rung (no f_γ)."""
+        if self.f_gamma is None:
+            return torch.zeros_like(sh)
         if self.gauss_dim:
             if gauss is None or gauss.shape != (sh.shape[0], GAUSS_DIM):
                 raise ValueError(

@@ -51,9 +51,12 @@ between the two cuts with the best F1 on bench seed 0, 0.20 and 0.25 (docs/findi
 
 @dataclass(frozen=True)
 class Config:
-    wild: bool | Literal["auto"] = True
+    wild: bool | Literal["colour", "auto"] = True
     """In-the-wild model (f_α, f_β, f_γ); false = plain 3DGS with the same budget;
-    "auto": in the wild only when the photos' appearance differs (ptovs.fit)."""
+    "colour": plain 3DGS with a photo-wide colour map and sky from each photo's
+    colour statistics (exposure, tint, sky; no occluder masks, no per-Gaussian
+    appearance; about plain's cost a step); "auto": decided from the photos
+    (ptovs.fit)."""
     preset: Literal["cpu", "authors"] = "cpu"
     """Network sizes: "cpu" (64² inputs, narrow) or "authors" (their exact layers)."""
     mask_concat: Literal["features", "input"] = "features"
