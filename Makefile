@@ -60,7 +60,7 @@ PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
 # column, a tiled roof; what it selects is in docs/results.md, "The demo")
 DEMO_TEXT ?= Doric Column
 
-.PHONY: setup demo pictures view test system-deps test-slurm lint format bench bench-accuracy bench-speed-error bench-encoders bench-real-chain bench-standin bench-multiapp bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
+.PHONY: setup demo pictures view test system-deps test-slurm lint format bench bench-accuracy bench-speed-error bench-stability bench-encoders bench-real-chain bench-standin bench-multiapp bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
 
 # where torch and torchvision come from: PyTorch's CPU index by default (PyPI's Linux
 # torch is the CUDA build, several GB); with an NVIDIA GPU give its CUDA index, e.g.
@@ -180,6 +180,15 @@ bench-speed-error: setup
 	$(BIN)/python bench/speed_error.py --acc-data $(QDATA)/accuracy --acc-work $(QWORK)/accuracy \
 	  --real $(REAL) --data $(QDATA)/speed_error --work $(QWORK)/speed_error \
 	  --recon-json $(QWORK)/speed_error/reconstruct.json
+
+# stability: the answers a user reads when only the rounding of floats changes (threads
+# 1/2/3, kernels held to AVX2, the pure-PyTorch rasterizer), each run in its own work
+# folder: the demo scene under every perturbation, then the accuracy instrument's dev
+# seeds (STAB_SEEDS) at 1 thread native and AVX2 and at 2 threads (about 2.5 h)
+STAB_SEEDS ?= 0-8
+bench-stability: setup
+	$(BIN)/python bench/stability.py --seeds $(STAB_SEEDS) --data $(QDATA)/stability \
+	  --acc-data $(QDATA)/accuracy --work $(QWORK)/stability --out $(QWORK)/stability/stability.json
 
 # the stand-in encoder's failure profile against CLIP's: calibration seeds only,
 # crops only, no method measured (STANDIN_VERSION=1 for the original stand-in)

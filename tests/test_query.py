@@ -114,6 +114,118 @@ def test_threshold_relative_rule_and_constant_map():
     assert rel.threshold(s, 0.4, "absolute").sum() == 7  # 0.4 .. 1.0
 
 
+def test_peak_of_is_the_maximum_or_a_quantile_and_hard_cases():
+    v = np.arange(1001, dtype=np.float32)
+    assert rel.peak_of(v) == 1000.0 and rel.peak_of(v, 1.0) == 1000.0
+    assert rel.peak_of(v, 0.99) == pytest.approx(990.0)
+    assert rel.peak_of(np.zeros(0, np.float32), 0.9) == 0.0
+    assert rel.peak_of(np.full(7, 0.25, np.float32), 0.5) == 0.25
+    big = np.array([1e30, -1e30, 3e38], np.float32)
+    assert np.isfinite(rel.peak_of(big, 0.5))
+
+
+def test_choose_level_is_argmax_or_a_softmax_blend():
+    level, w = rel.choose_level(np.array([0.45, 0.46, 0.30]))
+    assert level == 1 and w.tolist() == [0.0, 1.0, 0.0]
+    level, w = rel.choose_level(np.array([0.45, 0.46, 0.30]), 0.01)
+    assert level == 1 and w.sum() == pytest.approx(1.0)
+    assert 0.2 < w[0] < 0.5 and w[2] < 1e-6  # the near-tie shares, the far one not
+    _, w = rel.choose_level(np.array([0.2, 0.6]), 0.01)
+    assert w[1] > 0.999999  # a clear winner is the argmax's choice
+    _, w = rel.choose_level(np.array([0.5]), 0.01)
+    assert w.tolist() == [1.0]
+
+
+def test_threshold_with_a_robust_top():
+    s = np.linspace(0, 1, 11, dtype=np.float32)[None]
+    assert (rel.threshold(s, 0.4, "relative", None) == rel.threshold(s, 0.4)).all()
+    # top 0.5: n = s / 0.5, so s > 0.35 passes (values over the top count as n = 1)
+    m = rel.threshold(s, 0.4, "relative", 0.5)
+    assert m.tolist() == [[x > 0.35 + 1e-6 for x in np.linspace(0, 1, 11)]]
+    assert not rel.threshold(np.zeros((0, 3), np.float32), 0.4, "relative", 0.5).size
+
+
+def _spiked(value: float) -> np.ndarray:
+    """A [2, 1, 40, 40] score stack: level 1 has a clear 12×12 part at 0.5 over 0.1,
+    level 0 the same at 0.45, and one pixel of level 1 at `value`."""
+    s = np.full((2, 1, 40, 40), 0.1, np.float32)
+    s[1, 0, 10:22, 10:22] = 0.5
+    s[0, 0, 10:22, 10:22] = 0.45
+    s[1, 0, 30, 30] = value
+    return s
+
+
+def test_a_single_outlier_pixel_cannot_shrink_the_mask_under_a_robust_peak():
+    plain = rel.QuerySettings(background_filter="off", smooth_kernel=1, majority=1)
+    robust = rel.QuerySettings(background_filter="off", smooth_kernel=1, majority=1,
+                               peak_quantile=0.95)  # fmt: skip
+    base = rel.finish(torch.from_numpy(_spiked(0.5)), None, plain)
+    assert base.level == 1 and base.mask.sum() == 144 + 1
+    spike = rel.finish(torch.from_numpy(_spiked(0.99)), None, plain)
+    assert spike.mask.sum() == 1  # the maximum follows one pixel: the part is lost
+    r = rel.finish(torch.from_numpy(_spiked(0.99)), None, robust)
+    assert r.level == 1 and r.mask[10:22, 10:22].all() and r.mask.sum() == 145
+
+
+def test_defaults_keep_the_papers_finish_exactly():
+    """peak_quantile = 1 and level_softness = 0: the old rule, bit for bit."""
+    rng = np.random.default_rng(7)
+    s = torch.from_numpy(rng.random((3, 2, 30, 40), np.float32))
+    st = rel.QuerySettings(background_filter="off")
+    res = rel.finish(s, None, st)
+    fused = rel.fuse(s, st.fusion).numpy()
+    k, win = st.filter_sizes(30, 40)
+    sm = np.stack([rel.smooth(m, k) for m in fused])
+    level = int(np.argmax(sm.reshape(3, -1).max(1)))
+    lo = float(sm[level].min())
+    n = (sm[level] - lo) / (float(sm[level].max() - lo) + rel.DIV_EPS)
+    old = rel.majority(np.clip(2 * n - 1, 0, 1) > st.threshold, win)
+    assert res.level == level and np.array_equal(res.mask, old)
+    assert res.score == float(sm[level].max())
+
+
+def test_a_level_near_tie_moves_the_mask_a_little_when_blended():
+    """Two levels, peaks 0.50 vs 0.50 ± 0.002: the argmax switches the whole mask,
+    the blend moves it by a few pixels."""
+
+    def stack(delta):
+        s = np.full((2, 1, 40, 40), 0.1, np.float32)
+        s[0, 0, 5:15, 5:15] = 0.5 + delta  # a small part
+        s[1, 0, 5:30, 5:30] = 0.5 - delta  # a large one around it
+        return torch.from_numpy(s)
+
+    def iou(a, b):
+        return (a & b).sum() / max((a | b).sum(), 1)
+
+    hard = rel.QuerySettings(background_filter="off", smooth_kernel=1, majority=1)
+    soft = rel.QuerySettings(background_filter="off", smooth_kernel=1, majority=1,
+                             level_softness=0.02)  # fmt: skip
+    a, b = (rel.finish(stack(d), None, hard).mask for d in (0.002, -0.002))
+    assert iou(a, b) < 0.2
+    a, b = (rel.finish(stack(d), None, soft).mask for d in (0.002, -0.002))
+    assert iou(a, b) > 0.9
+
+
+def test_select_uses_the_same_robust_peak_and_blend():
+    s = torch.full((2, 1, 1000), 0.1)
+    s[1, 0, :100] = 0.5
+    s[0, 0, :100] = 0.45
+    s[1, 0, 999] = 0.99  # one outlier Gaussian
+    plain = rel.select(s, None, rel.QuerySettings(background_filter="off"))
+    robust = rel.select(s, None, rel.QuerySettings(background_filter="off",
+                                                   peak_quantile=0.95))  # fmt: skip
+    assert plain.mask.sum() == 1 and robust.mask[:100].all()
+    assert robust.mask.sum() == 101 and robust.level == 1
+
+
+@pytest.mark.parametrize("bad", [{"peak_quantile": 0.0}, {"peak_quantile": 1.5},
+                                 {"level_softness": -0.1},
+                                 {"level_softness": float("nan")}])  # fmt: skip
+def test_out_of_range_level_knobs_are_refused(bad):
+    with pytest.raises(ValueError, match="query\\."):
+        rel.QuerySettings(**bad)
+
+
 def _majority_loop(mask, size, exact):
     h, w = mask.shape
     r = size // 2

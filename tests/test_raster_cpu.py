@@ -828,3 +828,68 @@ def test_render_hard_cases_cpu():
         assert bool(torch.isfinite(grad).all())
         assert not bool(grad[list(HARD_CULLED)].any())
         _assert_close("grad", grad, ref_grad)
+
+
+@pytest.mark.parametrize(
+    "value",
+    ["native -fplugin=x.so", "$(touch /tmp/p)", "a b", "-O0", "x" * 80, "v3;ls"],
+)
+def test_march_refuses_what_is_not_a_target_name(monkeypatch, value):
+    from ptovs.raster import _cpu_build
+
+    monkeypatch.setenv("PTOVS_MARCH", value)
+    with pytest.raises(ValueError, match="PTOVS_MARCH"):
+        _cpu_build.march()
+
+
+def test_march_defaults_to_native_and_names_the_build(monkeypatch):
+    from ptovs.raster import _cpu_build
+
+    monkeypatch.delenv("PTOVS_MARCH", raising=False)
+    assert _cpu_build.march() == "native"
+    monkeypatch.setenv("PTOVS_MARCH", " ")
+    assert _cpu_build.march() == "native"
+    native = _cpu_build._flag_sets()
+    monkeypatch.setenv("PTOVS_MARCH", "x86-64-v3")
+    v3 = _cpu_build._flag_sets()
+    assert "-march=x86-64-v3" in v3[0][0] and "-march=native" in native[0][0]
+    # another target is another library: never one built for the other loaded
+    assert _cpu_build._build_name(*v3[0]) != _cpu_build._build_name(*native[0])
+
+
+_AVX2_SCRIPT = """
+import sys, numpy as np, torch
+sys.path.insert(0, {tests!r})
+from test_raster_cpu import _gaussians
+from ptovs.raster import _cpu, render
+assert _cpu.available(), "the kernel did not build"
+gs, cam = _gaussians(600, 40, 30, seed=5)
+cols = torch.rand(600, 3, generator=torch.Generator().manual_seed(6))
+np.save({out!r}, render(gs, cam, cols, backend="cpu", depth=False).image.numpy())
+"""
+
+
+def test_an_avx2_build_renders_what_the_native_one_does(tmp_path):
+    """PTOVS_MARCH=x86-64-v3 builds the kernel as for an AVX2 CPU (a process and a
+    cache of its own): the same image within float32 rounding."""
+    import os
+    import platform
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import numpy as np
+
+    from ptovs.raster import render
+
+    if platform.machine() not in ("x86_64", "AMD64"):
+        pytest.skip("x86-64 targets only")
+    out = tmp_path / "img.npy"
+    script = _AVX2_SCRIPT.format(tests=str(Path(__file__).parent), out=str(out))
+    env = dict(os.environ, PTOVS_MARCH="x86-64-v3", PTOVS_CACHE_DIR=str(tmp_path / "c"))
+    subprocess.run([sys.executable, "-c", script], check=True, env=env, timeout=600)
+    gs, cam = _gaussians(600, 40, 30, seed=5)
+    cols = torch.rand(600, 3, generator=torch.Generator().manual_seed(6))
+    ours = render(gs, cam, cols, backend="cpu", depth=False).image.numpy()
+    assert list((tmp_path / "c").rglob("*.so")), "no library built under the new cache"
+    np.testing.assert_allclose(np.load(out), ours, rtol=0, atol=1e-5)

@@ -58,6 +58,16 @@ class QueryConfig:
     smooth_kernel: int = 20
     threshold: float = 0.4
     threshold_mode: Literal["relative", "absolute"] = "relative"
+    peak_quantile: float = 1.0
+    """A map's peak (for the level choice, the relative threshold's top and the
+    score): this quantile of its smoothed scores, or of the Gaussians' scores in
+    `select`; 1 = the maximum, as the paper. Below 1 the peak is a property of the
+    map's top, not of one pixel or one Gaussian (docs/guide.md, "Same answers on any
+    CPU")."""
+    level_softness: float = 0.0
+    """0: the level with the highest peak, as the paper. > 0: the levels' maps blended
+    with weights softmax(peak / this) before the threshold, so levels whose peaks
+    nearly tie give a mask between theirs instead of one or the other."""
     majority: int = 7
     """Majority-filter window (0 or 1: off)."""
     majority_exact: bool = False
@@ -97,6 +107,8 @@ class QueryConfig:
             majority=self.majority,
             majority_exact=self.majority_exact,
             filter_ref=self.filter_ref,
+            peak_quantile=self.peak_quantile,
+            level_softness=self.level_softness,
         )
 
 
@@ -301,7 +313,10 @@ class Querier:
         self.decoder = PhraseDecoder(
             ae.decode, emb, mode=config.decode, size=config.table_size
         )
-        self.settings = config.settings()
+        try:
+            self.settings = config.settings()
+        except ValueError as exc:  # a knob out of range: the user's config
+            raise InputError(str(exc)) from None
         bg = list(BACKGROUND_PHRASES)
         if config.background_filter == "code":
             bg = ["sky"]

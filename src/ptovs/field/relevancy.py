@@ -285,16 +285,72 @@ def smooth(
 
 
 def threshold(
-    s: np.ndarray, tau: float = 0.4, mode: Literal["relative", "absolute"] = "relative"
+    s: np.ndarray,
+    tau: float = 0.4,
+    mode: Literal["relative", "absolute"] = "relative",
+    top: float | None = None,
 ) -> np.ndarray:
-    """Mask of a smoothed map: relative (min-max rescale n, clip(2n − 1) > τ) or Ŝ ≥ τ."""
+    """Mask of a smoothed map: relative (min-max rescale n, clip(2n − 1) > τ) or Ŝ ≥ τ.
+
+    `top` replaces the map's maximum in the rescale (a robust peak, `peak_of`);
+    values above it count as n = 1."""
     if mode == "absolute":
         return s >= tau
     if mode != "relative":
         raise ValueError(f"threshold mode must be relative or absolute, got {mode!r}")
-    lo = float(s.min()) if s.size else 0.0
-    n = (s - lo) / (float(s.max() - lo) + DIV_EPS) if s.size else s
+    if not s.size:
+        return np.zeros(s.shape, bool)
+    lo = float(s.min())
+    hi = float(s.max()) if top is None else max(float(top), lo)
+    n = (s - lo) / (hi - lo + DIV_EPS)
     return np.clip(2.0 * n - 1.0, 0.0, 1.0) > tau
+
+
+def peak_of(values: np.ndarray, quantile: float = 1.0) -> float:
+    """A map's peak: its maximum (`quantile` ≥ 1, the paper's), else that quantile
+    of its values (float64; 0 for an empty map). One pixel or one Gaussian decides
+    a maximum, so the maximum moves with every rounding that moves that one value;
+    a high quantile is an average property of the map's top and moves less."""
+    v = np.asarray(values).reshape(-1)
+    if v.size == 0:
+        return 0.0
+    if quantile >= 1.0:
+        return float(v.max())
+    return float(np.quantile(v.astype(np.float64), max(0.0, quantile)))
+
+
+def choose_level(peaks: np.ndarray, softness: float = 0.0) -> tuple[int, np.ndarray]:
+    """(ℓ*, weights [L]): ℓ* = argmax of the peaks; the weights are one-hot at ℓ*
+    (`softness` ≤ 0, the paper's choice) or softmax(peaks / softness): levels whose
+    peaks lie within a few `softness` of the best are blended, so a near-tie moves
+    the answer a little instead of switching it to another level's map."""
+    p = np.asarray(peaks, np.float64)
+    level = int(np.argmax(p))
+    if softness <= 0 or len(p) < 2:
+        w = np.zeros(len(p))
+        w[level] = 1.0
+        return level, w
+    e = np.exp((p - p[level]) / softness)
+    return level, e / e.sum()
+
+
+def _chosen_map(
+    maps: np.ndarray, peaks: np.ndarray, settings: QuerySettings
+) -> tuple[int, np.ndarray, float | None]:
+    """(ℓ*, the map the threshold cuts, its robust top or None for the maximum)
+    from [L, ...] maps and their peaks under the settings' level rule."""
+    level, w = choose_level(peaks, settings.level_softness)
+    if w[level] == 1.0:
+        m = maps[level]
+        top = None if settings.peak_quantile >= 1.0 else float(peaks[level])
+    else:
+        m = np.tensordot(w, maps.astype(np.float64), 1).astype(np.float32)
+        top = (
+            None
+            if settings.peak_quantile >= 1.0
+            else peak_of(m, settings.peak_quantile)
+        )
+    return level, m, top
 
 
 def majority(mask: np.ndarray, size: int = 7, exact: bool = False) -> np.ndarray:
@@ -335,6 +391,18 @@ class QuerySettings:
     majority: int = 7
     majority_exact: bool = False
     filter_ref: float = 0.0  # short side the two sizes are given at (0: fixed px)
+    peak_quantile: float = 1.0  # a map's peak: this quantile (1: its maximum)
+    level_softness: float = 0.0  # 0: the level of the highest peak; else a blend
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.peak_quantile <= 1.0:
+            raise ValueError(
+                f"query.peak_quantile = {self.peak_quantile}: give 0 < q ≤ 1"
+            )
+        if not (np.isfinite(self.level_softness) and self.level_softness >= 0.0):
+            raise ValueError(
+                f"query.level_softness = {self.level_softness}: give a number ≥ 0"
+            )
 
     def filter_sizes(self, height: int, width: int) -> tuple[int, int]:
         """(box kernel, majority window) in pixels for an image of this size: the
@@ -400,9 +468,9 @@ def finish(
     fused = fuse(s, settings.fusion).numpy()
     kernel, window = settings.filter_sizes(*fused.shape[-2:])
     sm = np.stack([smooth(m, kernel, damp) for m in fused])
-    peaks = sm.reshape(len(sm), -1).max(1)
-    level = int(np.argmax(peaks))
-    mask = threshold(sm[level], settings.threshold, settings.threshold_mode)
+    peaks = np.array([peak_of(m, settings.peak_quantile) for m in sm])
+    level, chosen, top = _chosen_map(sm, peaks, settings)
+    mask = threshold(chosen, settings.threshold, settings.threshold_mode, top)
     mask = majority(mask, window, settings.majority_exact)
     if not np.all(np.isfinite(sm)):
         raise FloatingPointError("query: a smoothed score map is not finite")
@@ -461,10 +529,10 @@ def select(
         fused_t = fused_t[:, neighbors].mean(-1)
     fused = fused_t.numpy().astype(np.float32)
     v = valid.numpy()
-    peaks = fused[:, v].max(1)
-    level = int(np.argmax(peaks))
+    peaks = np.array([peak_of(f[v], settings.peak_quantile) for f in fused])
+    level, chosen, top = _chosen_map(fused[:, v], peaks, settings)
     mask = np.zeros(P, bool)
-    mask[v] = threshold(fused[level, v], settings.threshold, settings.threshold_mode)
+    mask[v] = threshold(chosen, settings.threshold, settings.threshold_mode, top)
     if not np.all(np.isfinite(fused)):
         raise FloatingPointError("select: a fused score is not finite")
     return Selection(fused, level, float(peaks[level]), mask)
@@ -504,11 +572,13 @@ __all__ = [
     "answer",
     "background",
     "background_per_map",
+    "choose_level",
     "finish",
     "reduce_background",
     "score_maps",
     "fuse",
     "majority",
+    "peak_of",
     "relevancy",
     "select",
     "Selection",

@@ -6,8 +6,10 @@ system C++ compiler) into `<cache>/torch_ext/<name>/`, where `<cache>` is
 `$PTOVS_CACHE_DIR`, else `$XDG_CACHE_HOME/ptovs`, else `~/.cache/ptovs`. The name holds
 a hash of the source, the flags, torch, Python and the CPU (the build uses
 `-march=native`), so a shared home directory never loads a library built for another
-machine. The library exports a plain C ABI called through ctypes: it includes no torch
-headers, so a cold build takes about 6 s, and ctypes releases the GIL during a call.
+machine. `$PTOVS_MARCH` names another target (e.g. `x86-64-v3`, AVX2), built into a
+library of its own (docs/guide.md, "Same answers on any CPU"). The library exports a
+plain C ABI called through ctypes: it includes no torch headers, so a cold build takes
+about 6 s, and ctypes releases the GIL during a call.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import hashlib
 import logging
 import os
 import platform
+import re
 import shutil
 import sys
 import threading
@@ -38,12 +41,30 @@ ABI_VERSION = 2  # ptovs_abi_version() in composite.cpp
 # source asks for an FMA, for the same reason.
 _BASE_FLAGS = ["-O3", "-fno-math-errno", "-ffp-contract=off", "-Wno-psabi"]
 _OPENMP = ["-fopenmp"]
-# Tried in order; later entries drop what some compilers reject.
-_FLAG_SETS = (
-    (_BASE_FLAGS + ["-march=native"] + _OPENMP, _OPENMP),
-    (_BASE_FLAGS + _OPENMP, _OPENMP),
-    (_BASE_FLAGS + ["-march=native"], []),
-)
+_MARCH_OK = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]{0,63}")
+
+
+def march() -> str:
+    """The -march target: `$PTOVS_MARCH`, else "native". A value that is not a
+    plain target name is refused (it goes onto a compiler's command line)."""
+    value = os.environ.get("PTOVS_MARCH", "").strip() or "native"
+    if not _MARCH_OK.fullmatch(value):
+        raise ValueError(
+            f"PTOVS_MARCH={value!r} is not a compiler target name (e.g. native, "
+            "x86-64-v3, x86-64-v4); unset it or give a plain name"
+        )
+    return value
+
+
+def _flag_sets() -> tuple[tuple[list[str], list[str]], ...]:
+    """Tried in order; later entries drop what some compilers reject."""
+    arch = [f"-march={march()}"]
+    return (
+        (_BASE_FLAGS + arch + _OPENMP, _OPENMP),
+        (_BASE_FLAGS + _OPENMP, _OPENMP),
+        (_BASE_FLAGS + arch, []),
+    )
+
 
 _lock = threading.Lock()
 _lib: ctypes.CDLL | None = None
@@ -176,11 +197,12 @@ def load() -> ctypes.CDLL | None:
             )
             return None
         errors = []
-        for cflags, ldflags in _FLAG_SETS:
+        sets = _flag_sets()
+        for cflags, ldflags in sets:
             try:
                 _lib = _build(list(cflags), list(ldflags))
                 simd = "AVX2+FMA" if _lib.ptovs_simd_width() == 8 else "portable"
-                if ldflags != _OPENMP or "-march=native" not in cflags:
+                if (cflags, ldflags) != sets[0]:
                     log.info("ptovs CPU kernel (%s) built with reduced flags", simd)
                 log.debug("ptovs CPU kernel loaded (%s, flags %s)", simd, cflags)
                 return _lib
