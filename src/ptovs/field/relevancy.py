@@ -340,17 +340,12 @@ def _chosen_map(
     """(ℓ*, the map the threshold cuts, its robust top or None for the maximum)
     from [L, ...] maps and their peaks under the settings' level rule."""
     level, w = choose_level(peaks, settings.level_softness)
-    if w[level] == 1.0:
-        m = maps[level]
-        top = None if settings.peak_quantile >= 1.0 else float(peaks[level])
-    else:
-        m = np.tensordot(w, maps.astype(np.float64), 1).astype(np.float32)
-        top = (
-            None
-            if settings.peak_quantile >= 1.0
-            else peak_of(m, settings.peak_quantile)
-        )
-    return level, m, top
+    one = w[level] == 1.0
+    m = maps[level] if one else np.tensordot(w, maps.astype(np.float64), 1)
+    m = m.astype(np.float32, copy=False)
+    if settings.peak_quantile >= 1.0:
+        return level, m, None
+    return level, m, float(peaks[level]) if one else peak_of(m, settings.peak_quantile)
 
 
 def majority(mask: np.ndarray, size: int = 7, exact: bool = False) -> np.ndarray:
