@@ -1,5 +1,5 @@
 # ptovs: set up, demo, test, benchmark; and run the pipeline over DATA/* scenes.
-#   make demo          fresh machine → venv, tiny synthetic scene, every stage, masks, metrics, a PLY
+#   make demo          fresh machine → venv, the demo synthetic scene, every stage, masks, metrics, a PLY
 #   make view          after make demo: roam the demo scene and ask it things in the browser (open the printed URL)
 #   make test          the test suite (what CI runs)
 #   make bench         the rasterizer, each stage on bench scenes, the real photo sets,
@@ -56,9 +56,13 @@ STAGES := $(shell $(PLAN) stages)
 SETUP     ?= setup
 PTOVS_BIN ?= $(BIN)/ptovs
 PTOVS  := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(CONFIG))
-# the demo's text for select and roam (tiny, seed 0: its parts are a brick facade, a Doric
-# column, a tiled roof; what it selects is in docs/results.md, "The demo")
-DEMO_TEXT ?= Doric Column
+# the demo: the `demo` synthetic scene, seed 0 (20 photos of 160-176 px; its parts are
+# an Ionic column, two minarets, a stone wall, a tiled roof), its config (a Gaussian
+# budget that fits it), and the text select and roam find (docs/results.md, "The demo")
+DEMO_SCENE  ?= demo_s0
+DEMO_CONFIG ?= configs/demo.toml
+DEMO_TEXT   ?= Minaret
+DEMO := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(DEMO_CONFIG))
 
 .PHONY: setup demo pictures view test system-deps test-slurm lint format bench bench-accuracy bench-speed-error bench-stability bench-encoders bench-real-chain bench-standin bench-multiapp bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
 
@@ -80,24 +84,24 @@ $(VENV)/.installed: pyproject.toml
 	touch $@
 
 demo: setup
-	$(BIN)/ptovs synth-scene $(QDATA) --preset tiny --seed 0
-	@for s in $(STAGES); do $(PTOVS) $$s --data $(QDATA)/tiny_s0 || exit 1; done
-	$(PTOVS) export-ply --data $(QDATA)/tiny_s0 --out $(QWORK)/tiny_s0/tiny_s0.ply
-	$(PTOVS) select "$(DEMO_TEXT)" --data $(QDATA)/tiny_s0 --out $(QWORK)/tiny_s0/select.ply --rest $(QWORK)/tiny_s0/rest.ply
-	$(PTOVS) style --data $(QDATA)/tiny_s0
-	$(PTOVS) roam "$(DEMO_TEXT)" --data $(QDATA)/tiny_s0 --out $(QWORK)/tiny_s0/tour.mp4 --frames 30 --size 192x144
-	$(PTOVS) status --data $(QDATA)/tiny_s0
-	@echo "masks, heatmaps, overlays: "$(QWORK)"/tiny_s0/query-out/male/; metrics: "$(QWORK)"/tiny_s0/evaluate.md"
-	@echo "selection: "$(QWORK)"/tiny_s0/select.ply; styles: "$(QWORK)"/tiny_s0/style-out/male/; video: "$(QWORK)"/tiny_s0/tour.mp4"
+	$(BIN)/ptovs synth-scene $(QDATA) --preset demo --seed 0
+	@for s in $(STAGES); do $(DEMO) $$s --data $(QDATA)/$(DEMO_SCENE) || exit 1; done
+	$(DEMO) export-ply --data $(QDATA)/$(DEMO_SCENE) --out $(QWORK)/$(DEMO_SCENE)/$(DEMO_SCENE).ply
+	$(DEMO) select "$(DEMO_TEXT)" --data $(QDATA)/$(DEMO_SCENE) --out $(QWORK)/$(DEMO_SCENE)/select.ply --rest $(QWORK)/$(DEMO_SCENE)/rest.ply
+	$(DEMO) style --data $(QDATA)/$(DEMO_SCENE)
+	$(DEMO) roam "$(DEMO_TEXT)" --data $(QDATA)/$(DEMO_SCENE) --out $(QWORK)/$(DEMO_SCENE)/tour.mp4 --frames 30 --size 256x176
+	$(DEMO) status --data $(QDATA)/$(DEMO_SCENE)
+	@echo "masks, heatmaps, overlays: "$(QWORK)"/$(DEMO_SCENE)/query-out/male/; metrics: "$(QWORK)"/$(DEMO_SCENE)/evaluate.md"
+	@echo "selection: "$(QWORK)"/$(DEMO_SCENE)/select.ply; styles: "$(QWORK)"/$(DEMO_SCENE)/style-out/male/; video: "$(QWORK)"/$(DEMO_SCENE)/tour.mp4"
 
 # after `make demo`: the README's pictures and the figures their captions quote
 # (docs/img, docs/results/demo.json), redrawn from the demo's outputs
 pictures: setup
-	$(BIN)/python bench/pictures.py --data $(QDATA)/tiny_s0 --work $(QWORK) --figures docs/results/demo.json
+	$(BIN)/python bench/pictures.py --data $(QDATA)/$(DEMO_SCENE) --work $(QWORK) --config $(call q,$(DEMO_CONFIG)) --text "$(DEMO_TEXT)" --figures docs/results/demo.json
 
 # after `make demo`: the demo scene in the browser (open the URL it prints, with its token; Ctrl-C stops)
 view: setup
-	$(PTOVS) view --data $(QDATA)/tiny_s0
+	$(DEMO) view --data $(QDATA)/$(DEMO_SCENE)
 
 # TEST_JOBS pytest workers (pytest-xdist): the suite waits on processes, browsers and
 # a Slurm for much of its time, so two workers on two cores finish it sooner; the

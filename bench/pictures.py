@@ -1,14 +1,14 @@
 """Every picture the README shows from `make demo`, and the figures its captions quote.
 
-    python bench/pictures.py                            # data/tiny_s0, work/tiny_s0
-    python bench/pictures.py --data D/tiny_s0 --work W --figures /tmp/figures.json
+    python bench/pictures.py                            # data/demo_s0, work/demo_s0
+    python bench/pictures.py --data D/demo_s0 --work W --figures /tmp/figures.json
 
 From a finished demo work folder (`make demo`: the query, evaluate, select and style
 outputs must be there), into --docs (docs/img):
-  demo_overlay.png  one view's heatmap | overlay per query, enlarged 3x
+  demo_overlay.png  one view's heatmap | overlay per query, enlarged 2x
                     (bench/demo_picture.py's picture)
   select.png        a labelled photo, the field rendered at its camera, and the
-                    Gaussians --text selects rendered alone, enlarged 3x
+                    Gaussians --text selects rendered alone, enlarged 2x
   style_votes.png   the first voting view's style panel (`ptovs style`'s own)
   view_demo.png     `ptovs view` in Debian's chromium (Playwright) with --text
                     highlighted; --no-browser leaves it as it is
@@ -73,13 +73,13 @@ def overlay_picture(work: Path, scene: str, docs: Path) -> dict:
     )
     if not views:
         raise SystemExit(f"no query output under {work / scene}: run `make demo` first")
-    pic = compose(views[0])  # BGR, as cv2 reads it
+    pic = compose(views[0], scale=2)  # BGR, as cv2 reads it
     _write(docs / "demo_overlay.png", cv2.cvtColor(pic, cv2.COLOR_BGR2RGB))
     return {"view": views[0].name, "size": [pic.shape[1], pic.shape[0]]}
 
 
 def select_picture(
-    work: Path, data: Path, config: Path, text: str, docs: Path, scale: int = 3
+    work: Path, data: Path, config: Path, text: str, docs: Path, scale: int = 2
 ) -> dict:
     """docs/select.png: photo | field render | the selected Gaussians alone, at the
     first labelled view, enlarged `scale` times; the selection's figures."""
@@ -211,12 +211,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--data", type=Path, default=ROOT / "data" / "tiny_s0",
+    ap.add_argument("--data", type=Path, default=ROOT / "data" / "demo_s0",
                     help="the demo's scene folder")  # fmt: skip
     ap.add_argument("--work", type=Path, default=ROOT / "work",
                     help="the work folder `make demo` wrote (read only)")  # fmt: skip
-    ap.add_argument("--config", type=Path, default=ROOT / "configs" / "default.toml")
-    ap.add_argument("--text", default="Doric Column", help="the demo's DEMO_TEXT")
+    ap.add_argument("--config", type=Path, default=ROOT / "configs" / "demo.toml")
+    ap.add_argument("--text", default="Minaret", help="the demo's DEMO_TEXT")
     ap.add_argument("--docs", type=Path, default=ROOT / "docs" / "img")
     ap.add_argument("--figures", type=Path, default=None,
                     help="default: <work>/<scene>/figures.json "

@@ -61,7 +61,8 @@ PERTURBATIONS: dict[str, dict] = {
     "avx2-t1": {"threads": 1, "env": AVX2_ENV},
     "torch": {"threads": 2, "sets": [f"{s}.backend=torch" for s in RENDERING_STAGES]},
 }
-DEMO_TEXT = "Doric Column"
+DEMO_TEXT = "Minaret"  # make demo's DEMO_TEXT
+DEMO_CONFIG = str(ROOT / "configs" / "demo.toml")  # and its DEMO_CONFIG
 
 
 def _ptovs(work: Path, threads: int, env: dict, sets: list[str], *args: str) -> str:
@@ -198,17 +199,17 @@ def scene_spread(runs: dict[str, dict]) -> dict:
 # -------------------------------------------------------------------- parts --
 def part_demo(args: argparse.Namespace, res: Results) -> None:
     data = args.data / "demo"
-    scene = data / "tiny_s0"
+    scene = data / "demo_s0"
     if not scene.is_dir():
         subprocess.run([sys.executable, "-m", "ptovs", "synth-scene", str(data),
-                        "--preset", "tiny", "--seed", "0"], check=True)  # fmt: skip
+                        "--preset", "demo", "--seed", "0"], check=True)  # fmt: skip
     demo = res.setdefault("demo", {})
     for label in args.demo_perturbations:
         if label in demo:
             continue
         print(f"demo {label} ...", flush=True)
         demo[label] = run_scene(label, scene, args.work / "demo" / label,
-                                args.text, True, None)  # fmt: skip
+                                args.text, True, DEMO_CONFIG)  # fmt: skip
         res.save()
 
 
@@ -236,7 +237,7 @@ def report(res: Results) -> None:
     if len(demo) >= 2:
         s = scene_spread(demo)
         res["demo_spread"] = s
-        print("\nDemo (tiny), per perturbation:")
+        print("\nDemo (the demo scene), per perturbation:")
         print(
             "| run | mIoU / mPA / mP | select | level | style | held-out PSNR / NeRF-W |"
         )

@@ -93,7 +93,7 @@ def test_a_readme_command_parses_and_its_settings_exist(argv):
 
         check_config(load_config(ctx.params["config_file"]))
     data = sub.params.get("data")
-    m = re.fullmatch(r"data/(tiny|small|bench)_s(\d+)", str(data or ""))
+    m = re.fullmatch(r"data/(tiny|demo|small|bench)_s(\d+)", str(data or ""))
     if m:
         _check_synthetic(name, sub.params, m.group(1), int(m.group(2)))
 

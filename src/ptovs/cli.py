@@ -267,7 +267,9 @@ def _standin_option(version: int) -> int:
 @click.argument("out", type=click.Path(path_type=Path))
 @click.option(
     "--preset",
-    type=click.Choice(["tiny", "small", "small-3x", "bench", "landmark", "scale"]),
+    type=click.Choice(
+        ["tiny", "demo", "small", "small-3x", "bench", "landmark", "scale"]
+    ),
     default="tiny",
     show_default=True,
     help="Scene size: tiny (CI, ~12 views), small (the accuracy benchmark, ~48 "

@@ -30,7 +30,7 @@ from ptovs.field.model import APP_EMBED, GaussianModel, LearningRates
 from ptovs.field.render import composite_background, gaussian_colors, in_frustum
 from ptovs.nets import WildNets
 from ptovs.progress import CHECKPOINT_S, Heartbeat
-from ptovs.raster import Camera, render
+from ptovs.raster import Camera, kernels_only_parallel, render
 
 log = logging.getLogger(__name__)
 
@@ -238,6 +238,22 @@ def train(
     Returns:
         The final TrainState.
     """
+    # The same field at any --threads: torch's share of a step (networks, losses,
+    # Adam) on one thread, the compiled rasterizer on all (ptovs.raster).
+    with kernels_only_parallel():
+        return _train(cfg, images, cams, points, load=load, save=save, desc=desc)
+
+
+def _train(
+    cfg: Any,
+    images: Sequence[np.ndarray],
+    cams: list[Camera],
+    points: tuple[np.ndarray, np.ndarray],
+    *,
+    load: Callable[[], dict | None],
+    save: Callable[[dict], None],
+    desc: str,
+) -> TrainState:
     torch.manual_seed(cfg.seed)
     _, extent = scene_extent(cams)
     if len(points[0]) == 0:

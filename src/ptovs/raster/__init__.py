@@ -30,6 +30,7 @@ from __future__ import annotations
 from ptovs.raster._backends import available_backends
 from ptovs.raster._blend import BlendWeights, blend_weights, csr_matmul
 from ptovs.raster._common import Camera, Gaussians
+from ptovs.raster._cpu import kernels_only_parallel
 from ptovs.raster._render import RenderOutput, render
 from ptovs.raster._sh import SH_C0, eval_sh
 
@@ -44,7 +45,8 @@ __all__ = [
     "blend_weights",
     "csr_matmul",
     "eval_sh",
+    "kernels_only_parallel",
     "render",
 ]
 
-VERSION = 1  # bump when rendered values change (constants, rules, conventions)
+VERSION = 2  # bump when rendered values change (constants, rules, conventions)

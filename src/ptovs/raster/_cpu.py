@@ -18,6 +18,8 @@ Entry points:
 from __future__ import annotations
 
 import ctypes
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import torch
 from torch import Tensor
@@ -26,6 +28,35 @@ from torch.autograd.function import once_differentiable
 from ptovs.raster import _common
 from ptovs.raster._common import FOV_MARGIN, Camera, Gaussians, Isect, Projected
 from ptovs.raster._cpu_build import load
+
+_team: int | None = None  # the kernels' thread count inside `kernels_only_parallel`
+
+
+def threads() -> int:
+    """The compiled kernels' OpenMP team: torch's thread count, or inside
+    `kernels_only_parallel` the count it was entered with."""
+    return _team or torch.get_num_threads()
+
+
+@contextmanager
+def kernels_only_parallel() -> Iterator[None]:
+    """Torch's own operations on one thread, the compiled kernels on all of torch's.
+
+    The kernels give the same bits at any thread count (their sums run in fixed
+    slices); MKL's matrix products and oneDNN's convolutions do not (a weight
+    gradient's long sum is split by thread, in a shape-dependent way). Training
+    under this context is therefore the same at 1 or 16 threads: `--threads` changes
+    the time, not the field. Torch's share of a step is the small networks, the
+    losses and Adam."""
+    global _team
+    outer, before = torch.get_num_threads(), _team
+    _team = threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(outer)
+        _team = before
 
 
 def available() -> bool:
@@ -106,7 +137,7 @@ class _Composite(torch.autograd.Function):
             if bg.shape != (d,):
                 raise ValueError(f"background: expected [{d}], got {tuple(bg.shape)}")
         offsets, ids = _check_isect(isect, n, width, height)
-        nt = torch.get_num_threads()
+        nt = threads()
         image = torch.empty(height, width, d)
         alpha = torch.empty(height, width, 1)
         t_final = torch.empty(height, width)
@@ -143,9 +174,10 @@ class _Composite(torch.autograd.Function):
             if v_alpha is None
             else v_alpha.to(torch.float32).reshape(height, width).contiguous()
         )
-        nt = torch.get_num_threads()
-        # Per-thread slices, zeroed by the kernel and summed into grads[0].
-        grads = torch.empty(nt, n, 6 + d)
+        nt = threads()
+        # The kernel's fixed gradient slices (not one per thread, so the sums do not
+        # follow the thread count), zeroed by the kernel and summed into grads[0].
+        grads = torch.empty(lib.ptovs_grad_slices(), n, 6 + d)
         if width * height and n:
             rc = lib.ptovs_composite_bwd(
                 *map(_ptr, (m, c, o, col, bg)), n, d, _ptr(offsets), _ptr(ids),
@@ -249,7 +281,7 @@ class _Project(torch.autograd.Function):
             rc = lib.ptovs_project_fwd(
                 *map(_ptr, (m, q, s, o)), n, _ptr(params), width, height,
                 int(antialias), *map(_ptr, (means2d, conics, opac, depths, radii)),
-                torch.get_num_threads(),
+                threads(),
             )  # fmt: skip
             if rc:
                 raise RuntimeError(f"ptovs_project_fwd failed ({rc})")
@@ -277,7 +309,7 @@ class _Project(torch.autograd.Function):
         if n:
             rc = lib.ptovs_project_bwd(
                 *map(_ptr, (m, q, s, o)), n, _ptr(params), *ctx.meta,
-                *map(_ptr, ups), *map(_ptr, grads), torch.get_num_threads(),
+                *map(_ptr, ups), *map(_ptr, grads), threads(),
             )  # fmt: skip
             if rc:
                 raise RuntimeError(f"ptovs_project_bwd failed ({rc})")
@@ -373,7 +405,7 @@ def intersect(p: Projected, width: int, height: int, tile: int) -> Isect:
     means2d = means2d.contiguous()
     radii = radii.to(torch.int32).contiguous()
     depths = p.depths.detach().to(torch.float32).contiguous()
-    nt = max(1, min(torch.get_num_threads(), n))
+    nt = max(1, min(threads(), n))
     boxes = torch.empty(n, 4, dtype=torch.int32)
     order = torch.empty(n, dtype=torch.int32)
     counts = torch.empty(nt, n_tiles, dtype=torch.int32)
@@ -415,7 +447,7 @@ def _blend_rows(means2d, conics, opacities, isect, width, height) -> tuple[Csr, 
     m, c, o = _check_geometry(means2d, conics, opacities)
     n = m.shape[0]
     offsets, ids = _check_isect(isect, n, width, height)
-    nt = torch.get_num_threads()
+    nt = threads()
     args = (isect.tw, isect.th, isect.tile, width, height)
     counts = torch.zeros(width * height, dtype=torch.int32)
     rowptr = torch.zeros(width * height + 1, dtype=torch.int64)
@@ -453,7 +485,7 @@ def csr_transpose(w: Csr, n_cols: int) -> Csr:
     lib = _lib_or_raise()
     indptr, indices, values = (t.contiguous() for t in w)
     rows, nnz = indptr.numel() - 1, indices.numel()
-    nt = torch.get_num_threads()
+    nt = threads()
     t_indptr = torch.zeros(n_cols + 1, dtype=torch.int32)
     t_indices = torch.empty(nnz, dtype=torch.int32)
     t_values = torch.empty(nnz, dtype=torch.float32)
@@ -542,7 +574,7 @@ def spmm(indptr: Tensor, indices: Tensor, values: Tensor, f: Tensor) -> Tensor:
         indptr, indices, values = (t.contiguous() for t in (indptr, indices, values))
         rc = lib.ptovs_spmm(
             *map(_ptr, (indptr, indices, values)), rows, _ptr(f), d, _ptr(out),
-            torch.get_num_threads(),
+            threads(),
         )  # fmt: skip
         if rc:
             raise MemoryError(f"ptovs_spmm failed ({rc})")

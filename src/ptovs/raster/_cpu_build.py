@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 SOURCES = tuple(
     Path(__file__).with_name("csrc") / name for name in ("composite.cpp", "project.cpp")
 )
-ABI_VERSION = 2  # ptovs_abi_version() in composite.cpp
+ABI_VERSION = 3  # ptovs_abi_version() in composite.cpp
 # No -ffast-math: the kernel relies on IEEE comparisons (NaN fails every test) and on
 # forward and backward rounding identically; exp is a hand-written polynomial, so
 # fast-math buys nothing. -ffp-contract=off keeps a * b + c unfused except where the
@@ -76,6 +76,7 @@ _i64 = ctypes.c_int64
 _SIGNATURES = {
     "ptovs_abi_version": [],
     "ptovs_simd_width": [],
+    "ptovs_grad_slices": [],
     "ptovs_composite_fwd": [_p] * 5
     + [_i64, _i32, _p, _p]
     + [_i32] * 5

@@ -34,7 +34,7 @@ from ptovs.field.losses import psnr
 from ptovs.field.render import WildField
 from ptovs.field.train import train, visibility
 from ptovs.raster import VERSION as RASTER_VERSION
-from ptovs.raster import Camera, Gaussians
+from ptovs.raster import Camera, Gaussians, kernels_only_parallel
 from ptovs.registry import scene_input
 from ptovs.scene import PhotoStack, Scene
 from ptovs.stage import stage_command
@@ -318,6 +318,15 @@ def run(
     inputs: Inputs, config: Config, skip=frozenset(), ckpt: Checkpoint | None = None
 ) -> Iterator[tuple[str | None, dict]]:
     """Train (or import) the field, then yield per-view embeddings and masks."""
+    # the same field, embeddings and held-out scores at any --threads
+    # (ptovs.raster.kernels_only_parallel)
+    with kernels_only_parallel():
+        yield from _run(inputs, config, skip, ckpt)
+
+
+def _run(
+    inputs: Inputs, config: Config, skip=frozenset(), ckpt: Checkpoint | None = None
+) -> Iterator[tuple[str | None, dict]]:
     scene = inputs.scene
     train_views, images, cams = _views_and_images(scene)
     if config.import_dir:

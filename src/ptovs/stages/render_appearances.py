@@ -32,7 +32,7 @@ from ptovs.field.appearance import (
 )
 from ptovs.field.render import WildField
 from ptovs.raster import VERSION as RASTER_VERSION
-from ptovs.raster import Camera
+from ptovs.raster import Camera, kernels_only_parallel
 from ptovs.registry import scene_input, upstream
 from ptovs.stage import stage_command
 
@@ -137,6 +137,14 @@ def run(
     inputs: Inputs, config: Config, skip=frozenset(), ckpt: Checkpoint | None = None
 ) -> Iterator[tuple[str | None, dict]]:
     """Choose the targets, then yield each train view's renders."""
+    # the same renders at any --threads (ptovs.raster.kernels_only_parallel)
+    with kernels_only_parallel():
+        yield from _run(inputs, config, skip, ckpt)
+
+
+def _run(
+    inputs: Inputs, config: Config, skip=frozenset(), ckpt: Checkpoint | None = None
+) -> Iterator[tuple[str | None, dict]]:
     if config.n_appearances < 1:
         raise ValueError(f"n_appearances must be >= 1, got {config.n_appearances}")
     if config.quality_metric not in QUALITY_METRICS:

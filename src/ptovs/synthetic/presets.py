@@ -92,6 +92,20 @@ PRESETS: dict[str, Preset] = {
         track_keep=1.0,
         swatch_px=32,
     ),
+    # the demo (make demo): big enough that a part's mask reads as the part (a
+    # column is a column), small enough for the whole chain in about 5 minutes
+    "demo": Preset(
+        n_train=20,
+        n_test=2,
+        n_eval=3,
+        n_cand=12,
+        long_side=(160, 176),
+        n_parts=(4, 4),
+        aa=5,
+        points_per_image=80,
+        track_keep=1.0,
+        swatch_px=48,
+    ),
     # the accuracy instrument's scenes (bench/accuracy.py): bench's landmarks and
     # evaluation design at about half the image side and 60 % of the views
     "small": Preset(

@@ -254,6 +254,10 @@ float* falloc(size_t n) {
   return static_cast<float*>(p);
 }
 
+// Backward's gradient slices: fixed, so the order of its sums does not follow the
+// thread count (backward_tiles).
+constexpr int kGradSlices = 16;
+
 int thread_id() {
 #ifdef _OPENMP
   return omp_get_thread_num();
@@ -394,8 +398,9 @@ int forward_tiles(const GParam* gp, const float* colors, const int d_, const flo
 
 
 // Backward over all tiles (docs/rasterizer.md §4). v_image [H, W, D], v_alpha [H, W];
-// grads [nt, N, 6 + D] (any contents: zeroed here, one slice per thread, then summed
-// into slice 0, which holds the result), per Gaussian the sums over its pixels of
+// grads [kGradSlices, N, 6 + D] (any contents: zeroed here, one slice per group of
+// tiles, then summed into slice 0, which holds the result), per Gaussian the sums over
+// its pixels of
 // (v_sigma dx, v_sigma dy, v_sigma dx^2, v_sigma dx dy, v_sigma dy^2, v_opacity,
 // v_colors...). The caller turns them into v_mean2d = (a S0 + b S1, b S0 + c S1) and
 // v_conic = (S2 / 2, S3, S4 / 2): linear, so it is done once per Gaussian, not per tile.
@@ -425,140 +430,135 @@ int backward_tiles(const GParam* gp, const float* colors, const int d_, const fl
     vf* acc_heap = reinterpret_cast<vf*>(falloc((size_t)L * s_pad));
     vf acc_local[DT > 0 ? (6 + DT + L - 1) / L * L : 1];
     vf* acc = DT > 0 ? acc_local : acc_heap;
-    float* gbuf = grads + (int64_t)thread_id() * n * s;
-    // Each thread zeroes its own slice (and those of threads the runtime did not start):
-    // first touch in parallel, and no thread reads another's slice before the barrier.
-#ifdef _OPENMP
-    const int n_started = omp_get_num_threads();
-#else
-    const int n_started = 1;
-#endif
-    for (int k = thread_id(); k < nt; k += n_started)
-      std::memset(grads + (int64_t)k * n * s, 0, sizeof(float) * n * s);
     if (!tt || !bv || !sv || !last || !vloc || !colx || !acc_heap) {
       failed = 1;
     } else {
       for (int j = 0; j < s_pad; ++j) acc[j] = splat(0.0f);  // padding stays zero
     }
-    // Tiles go to threads round-robin (static, 1), not first-come: each thread's
-    // gradient slice then sums the same tiles in the same order on every run, and
-    // the slices are added in thread order below, so gradients are bitwise
-    // reproducible for a given thread count (a dynamic schedule made every run
-    // differ in the last bits, which training amplified).
-#pragma omp for schedule(static, 1)
-    for (int ti = 0; ti < n_tiles; ++ti) {
-      if (failed) continue;  // no scratch memory: every thread still reaches the loop
-      const Tile t = make_tile(ti, tw, tile, width, height);
-      const int32_t start = tile_offsets[ti];
-      int32_t max_last = -1;
-      for (int ly = 0; ly < tile; ++ly)
-        for (int lx = 0; lx < t.rs; ++lx) {
-          const int p = ly * t.rs + lx;
-          if (ly < t.rows && lx < t.cols) {
-            const int64_t pg = (int64_t)(t.y0 + ly) * width + t.x0 + lx;
-            const float tf = t_final[pg];
-            const float* vp = v_image + pg * d;
-            float bgdot = 0.0f;
-            if (bg)
-              for (int j = 0; j < d; ++j) bgdot += bg[j] * vp[j];
-            for (int j = 0; j < d; ++j) vloc[(size_t)j * npix + p] = vp[j];
-            tt[p] = tf;
-            sv[p] = tf * (v_alpha[pg] - bgdot);
-            last[p] = last_in[pg];
-            max_last = std::max(max_last, last[p]);
-          } else {
-            for (int j = 0; j < d; ++j) vloc[(size_t)j * npix + p] = 0.0f;
-            tt[p] = 1.0f;
-            sv[p] = 0.0f;
-            last[p] = -1;
-          }
-          bv[p] = 0.0f;
-        }
-      if (max_last < start) continue;
-      for (int lx = 0; lx < t.rs; ++lx) colx[lx] = (float)(t.x0 + lx) + 0.5f;
-
-      for (int32_t idx = max_last; idx >= start; --idx) {
-        if (idx - kPrefetch >= start) {
-          const int32_t ahead = flatten_ids[idx - kPrefetch];
-          __builtin_prefetch(gp + ahead);
-          const float* gr = gbuf + (int64_t)ahead * s;
-          __builtin_prefetch(gr, 1);
-          __builtin_prefetch(gr + s - 1, 1);
-        }
-        const int32_t gid = flatten_ids[idx];
-        const GParam& g = gp[gid];
-        if (!(g.thr >= 0.0f)) continue;
-        int ly0, ly1, k0, k1;
-        if (!box(g, t, ly0, ly1, k0, k1)) continue;
-        const float* col = colors + (int64_t)gid * d;
-        const vf vu = splat(g.u), vo = splat(g.o);
-        const vi vidx = splati(idx);
-        const vf z = splat(0.0f);
-        // acc: sums over the tile's pixels of (v_sigma dx, v_sigma dy, v_sigma dx^2,
-        // v_sigma dx dy, v_sigma dy^2, v_opacity, v_colors...), the layout of grads.
-        for (int j = 0; j < s; ++j) acc[j] = z;
-        bool touched = false;
-        for (int ly = ly0; ly <= ly1; ++ly) {
-          const Row r = row_of(g, t, ly);
-          const vf vdy = splat(r.dy);
-          for (int k = k0; k <= k1; ++k) {
-            const int p = ly * t.rs + k * L;
-            const vf dx = vu - ldf(colx + k * L);
-            const vf sig = sigma_of(g, r, dx);
-            // Only pairs the forward composited: idx <= last, same tests as there.
-            const vi m0 = (vi)(vidx <= ldi(last + p)) & sigma_ok(g, sig);
-            if (!mask_bits(m0)) continue;
-            const vf e = vexp(-sig);
-            const vf oe = vo * e;
-            const vf al = vmin(oe, splat(kMaxAlpha));
-            const vi m = m0 & (vi)(al >= splat(kAlphaThreshold));
-            touched = true;
-            // T recovery: T_i = T_{i+1} / max(1e-6, 1 - alpha_i).
-            const vf ra = splat(1.0f) / vmax(splat(1.0f) - al, splat(kMinOneMinusAlpha));
-            const vf tv = ldf(tt + p);
-            const vf ti_ = tv * ra;
-            stf(tt + p, sel(m, ti_, tv));
-            const vf w = sel(m, al * ti_, z);
-            vf cv = z;
-            const float* vp = vloc + p;
-            for (int j = 0; j < d; ++j, vp += npix) {
-              const vf vd = ldf(vp);
-              cv = vfma(splat(col[j]), vd, cv);
-              acc[6 + j] = vfma(w, vd, acc[6 + j]);
+    // The gradient sums are split into kGradSlices slices, not one per thread: slice
+    // sl holds tiles sl, sl + kGradSlices, ... in tile order, and the slices are added
+    // in slice order below. Which thread runs a slice does not matter, so gradients
+    // are the same bits on every run and at every thread count (one slice per thread
+    // made a run's answer depend on --threads, which training amplified). Each slice
+    // is zeroed by the thread that fills it.
+#pragma omp for schedule(dynamic, 1)
+    for (int sl = 0; sl < kGradSlices; ++sl) {
+      float* gbuf = grads + (int64_t)sl * n * s;
+      std::memset(gbuf, 0, sizeof(float) * n * s);
+      for (int ti = sl; ti < n_tiles; ti += kGradSlices) {
+        if (failed) continue;  // no scratch memory: every thread still reaches the loop
+        const Tile t = make_tile(ti, tw, tile, width, height);
+        const int32_t start = tile_offsets[ti];
+        int32_t max_last = -1;
+        for (int ly = 0; ly < tile; ++ly)
+          for (int lx = 0; lx < t.rs; ++lx) {
+            const int p = ly * t.rs + lx;
+            if (ly < t.rows && lx < t.cols) {
+              const int64_t pg = (int64_t)(t.y0 + ly) * width + t.x0 + lx;
+              const float tf = t_final[pg];
+              const float* vp = v_image + pg * d;
+              float bgdot = 0.0f;
+              if (bg)
+                for (int j = 0; j < d; ++j) bgdot += bg[j] * vp[j];
+              for (int j = 0; j < d; ++j) vloc[(size_t)j * npix + p] = vp[j];
+              tt[p] = tf;
+              sv[p] = tf * (v_alpha[pg] - bgdot);
+              last[p] = last_in[pg];
+              max_last = std::max(max_last, last[p]);
+            } else {
+              for (int j = 0; j < d; ++j) vloc[(size_t)j * npix + p] = 0.0f;
+              tt[p] = 1.0f;
+              sv[p] = 0.0f;
+              last[p] = -1;
             }
-            const vf bvv = ldf(bv + p);
-            // v_alpha = <c T_i - buf ra, v> + T_final ra (v_alpha_out - <bg, v>)
-            const vf va = ti_ * cv - ra * bvv + ra * ldf(sv + p);
-            stf(bv + p, vfma(w, cv, bvv));
-            // Clamp active (o exp(-sigma) > 0.99): no gradient to sigma or opacity.
-            const vi gm = m & ~(vi)(oe > splat(kMaxAlpha));
-            const vf v_o = sel(gm, e * va, z);
-            const vf v_sig = -(vo * v_o);
-            const vf gdx = v_sig * dx, gdy = v_sig * vdy;
-            acc[0] += gdx;
-            acc[1] += gdy;
-            acc[2] = vfma(gdx, dx, acc[2]);
-            acc[3] = vfma(gdx, vdy, acc[3]);
-            acc[4] = vfma(gdy, vdy, acc[4]);
-            acc[5] += v_o;
+            bv[p] = 0.0f;
           }
-        }
-        if (!touched) continue;
-        // One transposed reduction per 8 sums, added straight into the buffer.
-        float* gr = gbuf + (int64_t)gid * s;
-        int j = 0;
-        for (; j + L <= s; j += L) stf(gr + j, ldf(gr + j) + reduce8(acc + j));
-        if (j < s) {
-          const vf tail = reduce8(acc + j);  // acc is padded to a multiple of 8
-          for (int l = 0; j + l < s; ++l) gr[j + l] += tail[l];
+        if (max_last < start) continue;
+        for (int lx = 0; lx < t.rs; ++lx) colx[lx] = (float)(t.x0 + lx) + 0.5f;
+
+        for (int32_t idx = max_last; idx >= start; --idx) {
+          if (idx - kPrefetch >= start) {
+            const int32_t ahead = flatten_ids[idx - kPrefetch];
+            __builtin_prefetch(gp + ahead);
+            const float* gr = gbuf + (int64_t)ahead * s;
+            __builtin_prefetch(gr, 1);
+            __builtin_prefetch(gr + s - 1, 1);
+          }
+          const int32_t gid = flatten_ids[idx];
+          const GParam& g = gp[gid];
+          if (!(g.thr >= 0.0f)) continue;
+          int ly0, ly1, k0, k1;
+          if (!box(g, t, ly0, ly1, k0, k1)) continue;
+          const float* col = colors + (int64_t)gid * d;
+          const vf vu = splat(g.u), vo = splat(g.o);
+          const vi vidx = splati(idx);
+          const vf z = splat(0.0f);
+          // acc: sums over the tile's pixels of (v_sigma dx, v_sigma dy, v_sigma dx^2,
+          // v_sigma dx dy, v_sigma dy^2, v_opacity, v_colors...), the layout of grads.
+          for (int j = 0; j < s; ++j) acc[j] = z;
+          bool touched = false;
+          for (int ly = ly0; ly <= ly1; ++ly) {
+            const Row r = row_of(g, t, ly);
+            const vf vdy = splat(r.dy);
+            for (int k = k0; k <= k1; ++k) {
+              const int p = ly * t.rs + k * L;
+              const vf dx = vu - ldf(colx + k * L);
+              const vf sig = sigma_of(g, r, dx);
+              // Only pairs the forward composited: idx <= last, same tests as there.
+              const vi m0 = (vi)(vidx <= ldi(last + p)) & sigma_ok(g, sig);
+              if (!mask_bits(m0)) continue;
+              const vf e = vexp(-sig);
+              const vf oe = vo * e;
+              const vf al = vmin(oe, splat(kMaxAlpha));
+              const vi m = m0 & (vi)(al >= splat(kAlphaThreshold));
+              touched = true;
+              // T recovery: T_i = T_{i+1} / max(1e-6, 1 - alpha_i).
+              const vf ra = splat(1.0f) / vmax(splat(1.0f) - al, splat(kMinOneMinusAlpha));
+              const vf tv = ldf(tt + p);
+              const vf ti_ = tv * ra;
+              stf(tt + p, sel(m, ti_, tv));
+              const vf w = sel(m, al * ti_, z);
+              vf cv = z;
+              const float* vp = vloc + p;
+              for (int j = 0; j < d; ++j, vp += npix) {
+                const vf vd = ldf(vp);
+                cv = vfma(splat(col[j]), vd, cv);
+                acc[6 + j] = vfma(w, vd, acc[6 + j]);
+              }
+              const vf bvv = ldf(bv + p);
+              // v_alpha = <c T_i - buf ra, v> + T_final ra (v_alpha_out - <bg, v>)
+              const vf va = ti_ * cv - ra * bvv + ra * ldf(sv + p);
+              stf(bv + p, vfma(w, cv, bvv));
+              // Clamp active (o exp(-sigma) > 0.99): no gradient to sigma or opacity.
+              const vi gm = m & ~(vi)(oe > splat(kMaxAlpha));
+              const vf v_o = sel(gm, e * va, z);
+              const vf v_sig = -(vo * v_o);
+              const vf gdx = v_sig * dx, gdy = v_sig * vdy;
+              acc[0] += gdx;
+              acc[1] += gdy;
+              acc[2] = vfma(gdx, dx, acc[2]);
+              acc[3] = vfma(gdx, vdy, acc[3]);
+              acc[4] = vfma(gdy, vdy, acc[4]);
+              acc[5] += v_o;
+            }
+          }
+          if (!touched) continue;
+          // One transposed reduction per 8 sums, added straight into the buffer.
+          float* gr = gbuf + (int64_t)gid * s;
+          int j = 0;
+          for (; j + L <= s; j += L) stf(gr + j, ldf(gr + j) + reduce8(acc + j));
+          if (j < s) {
+            const vf tail = reduce8(acc + j);  // acc is padded to a multiple of 8
+            for (int l = 0; j + l < s; ++l) gr[j + l] += tail[l];
+          }
         }
       }
     }
-    // (implicit barrier) Sum the per-thread slices into slice 0, in thread order.
+    // (implicit barrier) Sum the slices into slice 0, in slice order.
 #pragma omp for schedule(static)
     for (int64_t i = 0; i < n * s; ++i) {
       float sum = grads[i];
-      for (int k = 1; k < nt; ++k) sum += grads[(int64_t)k * n * s + i];
+      for (int k = 1; k < kGradSlices; ++k) sum += grads[(int64_t)k * n * s + i];
       grads[i] = sum;
     }
     free(tt);
@@ -686,7 +686,10 @@ int backward_any(int d, A... args) {
 
 extern "C" {
 
-int ptovs_abi_version() { return 2; }
+int ptovs_abi_version() { return 3; }
+
+// The leading dimension of ptovs_composite_bwd's grads.
+int ptovs_grad_slices() { return kGradSlices; }
 
 int ptovs_simd_width() { return PTOVS_AVX2 ? 8 : 0; }
 
