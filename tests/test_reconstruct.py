@@ -344,7 +344,9 @@ def test_colour_rung_is_a_plain_field_with_a_photo_wide_map(tmp_path, tiny_scene
     assert list((work / "tiny_s0" / "render-appearances").glob("*.h5"))
 
 
-def test_another_thread_count_trains_the_same_field_bitwise(tmp_path, tiny_scene_dir, tiny_run):
+def test_another_thread_count_trains_the_same_field_bitwise(
+    tmp_path, tiny_scene_dir, tiny_run
+):
     """Same scene and config on another thread count: the same bits, f_β's mask in
     the loss included. The compiled backward sums fixed slices of tiles in a fixed
     order, and torch's share (networks, losses, Adam) runs on one thread, so
