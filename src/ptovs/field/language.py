@@ -382,6 +382,7 @@ def untrained(stop: str, seconds: float) -> tuple[dict, dict[str, list[float]]]:
     return metrics, {"epoch_loss": [], "epoch_seconds": []}
 
 
+@kernels_only_parallel()  # the same codes at any --threads
 def train_male(
     store: ViewStore,
     n_channels: int,
@@ -402,21 +403,6 @@ def train_male(
         (f, metrics, history): raw codes (not normalised), a summary and per-epoch
         mean losses.
     """
-    # the same codes at any --threads (ptovs.raster.kernels_only_parallel)
-    with kernels_only_parallel():
-        return _train_male(store, n_channels, config, gaussians, cams, load, save, desc)
-
-
-def _train_male(
-    store: ViewStore,
-    n_channels: int,
-    config: MaleConfig,
-    gaussians: Gaussians | None = None,
-    cams: Sequence[Camera] | None = None,
-    load: Callable[[], dict | None] = lambda: None,
-    save: Callable[[dict], None] = lambda s: None,
-    desc: str = "train-male",
-) -> tuple[Tensor, dict, dict[str, list[float]]]:
     n_views = len(store)
     if n_views == 0:
         raise ValueError("train-male: no training views")

@@ -214,6 +214,9 @@ def view_order(step: int, n: int, seed: int) -> int:
     return int(torch.randperm(n, generator=gen)[pos])
 
 
+# the same field at any --threads: torch's share of a step (networks, losses, Adam)
+# on one thread, the compiled rasterizer on all (ptovs.raster.kernels_only_parallel)
+@kernels_only_parallel()
 def train(
     cfg: Any,
     images: Sequence[np.ndarray],  # train images [H, W, 3] float32 on access
@@ -238,22 +241,6 @@ def train(
     Returns:
         The final TrainState.
     """
-    # The same field at any --threads: torch's share of a step (networks, losses,
-    # Adam) on one thread, the compiled rasterizer on all (ptovs.raster).
-    with kernels_only_parallel():
-        return _train(cfg, images, cams, points, load=load, save=save, desc=desc)
-
-
-def _train(
-    cfg: Any,
-    images: Sequence[np.ndarray],
-    cams: list[Camera],
-    points: tuple[np.ndarray, np.ndarray],
-    *,
-    load: Callable[[], dict | None],
-    save: Callable[[dict], None],
-    desc: str,
-) -> TrainState:
     torch.manual_seed(cfg.seed)
     _, extent = scene_extent(cams)
     if len(points[0]) == 0:
