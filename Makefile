@@ -188,7 +188,7 @@ bench-speed-error: setup
 # stability: the answers a user reads when only the rounding of floats changes (threads
 # 1/2/3, kernels held to AVX2, the pure-PyTorch rasterizer), each run in its own work
 # folder: the demo scene under every perturbation, then the accuracy instrument's dev
-# seeds (STAB_SEEDS) at 1 thread native and AVX2 and at 2 threads (about 2.5 h)
+# seeds (STAB_SEEDS) at 2 threads, native and held to AVX2 (about 2 h, not timed whole)
 STAB_SEEDS ?= 0-8
 bench-stability: setup
 	$(BIN)/python bench/stability.py --seeds $(STAB_SEEDS) --data $(QDATA)/stability \
