@@ -88,3 +88,82 @@ def test_unposed_photos_are_checked_before_sfm_poses_them(tiny_scene_dir, tmp_pa
              f"extract-features.clip_checkpoint={tmp_path / 'nope.pt'}")  # fmt: skip
     assert r.exit_code == 1 and "nope.pt" in r.output, r.output
     assert not work.exists()
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _checkpoint_table() -> str:
+    """The guide's section that every missing-checkpoint error points at (it
+    fails here, not in a user's terminal, when the heading is renamed)."""
+    from ptovs.preflight import CHECKPOINT_TABLE
+
+    page, title = CHECKPOINT_TABLE.split(", ", 1)
+    head = f"### {title.strip(chr(39))}\n"
+    text = (ROOT / page).read_text()
+    assert head in text, f"{page} has no heading {head!r} ({CHECKPOINT_TABLE})"
+    return text.split(head, 1)[1].split("\n## ", 1)[0].split("\n### ", 1)[0]
+
+
+def test_a_missing_checkpoint_names_the_file_and_the_guides_table(tmp_path):
+    from types import SimpleNamespace
+
+    from ptovs.preflight import CHECKPOINT_TABLE, check_openclip, check_sam_checkpoint
+
+    _checkpoint_table()
+    cases = [
+        (lambda: check_openclip("MobileCLIP2-S0", ""), InputError,
+         "open_clip_model.safetensors from Hugging Face timm/MobileCLIP2-S0-OpenCLIP"),
+        (lambda: check_openclip("ViT-B-16", tmp_path / "nope.bin", "laion2b-s34b-b88k"),
+         MissingInputError, "does not exist"),
+        (lambda: check_openclip("ViT-B-16", tmp_path / "nope.bin", "laion2b_s34b_b88k"),
+         MissingInputError, "open_clip_pytorch_model.bin from Hugging Face laion/"),
+        (lambda: check_openclip("ViT-B-32", ""), InputError, "clip_checkpoint=FILE"),
+        (lambda: check_sam_checkpoint(SimpleNamespace(
+            segmenter="sam", sam_model="vit_h", sam_checkpoint="")),
+         MissingInputError, "take sam_vit_h_4b8939.pth from Meta"),
+        (lambda: check_sam_checkpoint(SimpleNamespace(
+            segmenter="sam2", sam2_model="tiny", sam_checkpoint=str(tmp_path / "n.pt"))),
+         MissingInputError, "take sam2.1_hiera_tiny.pt from Meta"),
+    ]  # fmt: skip
+    for call, error, says in cases:
+        with pytest.raises(error) as e:
+            call()
+        msg = str(e.value)
+        assert says in msg and msg.endswith(f"where to download it: {CHECKPOINT_TABLE}")
+        assert "\n" not in msg
+
+
+def test_the_shipped_configs_expect_the_files_the_guides_table_names():
+    """photos-cpu/-gpu's checkpoint paths (SAM 2.1's in a comment) are in the
+    table, under the names preflight expects: the file as its publisher names it."""
+    import re
+
+    from ptovs.config import load_config
+    from ptovs.preflight import CLIP_FILES, SAM_FILES, _clip_file
+
+    table = _checkpoint_table()
+    paths = []
+    for name in ("photos-cpu.toml", "photos-gpu.toml"):
+        text = (ROOT / "configs" / name).read_text()
+        cfg = load_config(ROOT / "configs" / name)["extract-features"]
+        clip = cfg["clip_checkpoint"]
+        assert (
+            Path(clip).name
+            == _clip_file(cfg["clip_model"], cfg.get("clip_pretrained", ""))[0]
+        ), name
+        paths.append(clip)
+        if "sam_checkpoint" in cfg:
+            assert Path(cfg["sam_checkpoint"]).name == SAM_FILES[cfg["sam_model"]]
+            paths.append(cfg["sam_checkpoint"])
+        for model, path in re.findall(
+            r'# sam2_model = "(\w+)"\n# sam_checkpoint = "([^"]+)"', text
+        ):
+            assert Path(path).name == f"sam2.1_hiera_{model}.pt", name
+            paths.append(path)
+    assert len(paths) == 4, paths
+    for path in paths:
+        assert f"`{path}`" in table, path
+    for file, source in CLIP_FILES.values():
+        assert f"`{file}`" in table and f"`{source.split()[-1]}`" in table, source
+    assert f"`{SAM_FILES['vit_h']}`" in table

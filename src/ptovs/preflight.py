@@ -18,6 +18,41 @@ from ptovs.errors import InputError, MissingInputError
 
 log = logging.getLogger(__name__)
 
+# Where a missing checkpoint's error sends the user: the guide's table of each
+# model's source, file and checksum (tests/test_preflight.py checks the heading).
+CHECKPOINT_TABLE = "docs/guide.md, 'Checkpoints: where each comes from'"
+# The file as its publisher names it, for the models the shipped configs use:
+# (clip_model, clean pretrained tag; "" = any) -> (file, where from).
+CLIP_FILES = {
+    ("MobileCLIP2-S0", ""): (
+        "open_clip_model.safetensors",
+        "Hugging Face timm/MobileCLIP2-S0-OpenCLIP",
+    ),
+    ("ViT-B-16", "laion2b_s34b_b88k"): (
+        "open_clip_pytorch_model.bin",
+        "Hugging Face laion/CLIP-ViT-B-16-laion2B-s34B-b88K",
+    ),
+}
+# segment-anything's sam_model -> Meta's file (dl.fbaipublicfiles.com/segment_anything)
+SAM_FILES = {
+    "vit_h": "sam_vit_h_4b8939.pth",
+    "vit_l": "sam_vit_l_0b3195.pth",
+    "vit_b": "sam_vit_b_01ec64.pth",
+}
+
+
+def _where(file: str = "", source: str = "") -> str:
+    """The tail of a missing-checkpoint error: the expected file, where known,
+    and the guide's table."""
+    take = f" (take {file}" + (f" from {source}" if source else "") + ")"
+    return (take if file else "") + f"; where to download it: {CHECKPOINT_TABLE}"
+
+
+def _clip_file(model: str, pretrained: str) -> tuple[str, str]:
+    """(file, where from) of `model`'s checkpoint where the table knows it."""
+    tag = str(pretrained).lower().replace("-", "_")  # as open_clip matches tags
+    return CLIP_FILES.get((model, tag)) or CLIP_FILES.get((model, ""), ("", ""))
+
 
 def _read_state(field: str, path: str, read: Any) -> dict:
     """`read(path)` (a state dict); a torch/pickle error becomes one line naming
@@ -205,15 +240,16 @@ def check_openclip(
     precision `precision` may use)."""
     if not str(checkpoint):
         raise InputError(
-            "encoder = 'openclip' needs clip_checkpoint = a local OpenCLIP state dict "
-            "(docs/guide.md: which model to take); nothing is downloaded: "
-            "--set extract-features.clip_checkpoint=FILE"
+            "encoder = 'openclip' needs clip_checkpoint = a local OpenCLIP state dict; "
+            "nothing is downloaded: --set extract-features.clip_checkpoint=FILE"
+            + _where(*_clip_file(model, pretrained))
         )
     path = Path(checkpoint).expanduser()
     if not path.is_file():
         raise MissingInputError(
             f"clip_checkpoint {path} does not exist; give the local OpenCLIP state "
             "dict with --set extract-features.clip_checkpoint=FILE"
+            + _where(*_clip_file(model, pretrained))
         )
     st = path.stat()
     _openclip_fits(
@@ -267,10 +303,15 @@ def check_sam_checkpoint(config: Any) -> None:
     what = "a local SAM 2.1 checkpoint" if sam2 else "a local SAM checkpoint"
     ckpt = Path(str(config.sam_checkpoint)).expanduser()
     if not str(config.sam_checkpoint) or not ckpt.is_file():
+        if sam2:
+            file = f"sam2.1_hiera_{config.sam2_model}.pt"
+        else:
+            file = SAM_FILES.get(str(getattr(config, "sam_model", "")), "")
         raise MissingInputError(
             f"segmenter = {config.segmenter!r} needs sam_checkpoint = {what} "
             f"({str(ckpt) if str(config.sam_checkpoint) else 'none given'}); "
             "--set extract-features.sam_checkpoint=FILE"
+            + _where(file, "Meta" if file else "")
         )
     if sam2:
         st = ckpt.stat()
