@@ -3,10 +3,12 @@ decision enters the chain (resolved before keying, printed, overridable)."""
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import json
 import logging
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +18,7 @@ import torch
 
 from ptovs import fit
 from ptovs.config import load_config
-from ptovs.keys import read_only
+from ptovs.keys import flush_fingerprints, read_only
 from ptovs.stage import Chain, RunContext, resolve_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -93,14 +95,69 @@ def test_a_photo_seeing_few_points_gives_no_gain():
     assert list(idx) == [0, 1, 2]
 
 
+def _evidence(**over) -> dict:
+    """photo_evidence's dict for 12 photos with a shared appearance, `over` set."""
+    ev = {"photos": 12, "read": 12, "views": 12, "points": 4000,
+          "appearance_spread": 0.01, "outliers": 0.0, "short_side": 72}  # fmt: skip
+    return {**ev, **over}
+
+
 def test_sam_grid_follows_the_image_size():
+    """The grid reads the photos' size: one photo with a gain of twelve (no
+    appearance spread to measure) does not stop it."""
+
     def grid(side: int) -> int:
-        ev = {"appearance_spread": 0.0, "views": 1, "short_side": side}
+        ev = _evidence(views=1, appearance_spread=0.0, short_side=side)
         return fit.decide("extract-features", "sam_points_per_side", ev)[0]
 
     assert grid(100) == 8 and grid(1024) == 16 and grid(4000) == 32
     with pytest.raises(KeyError):
-        fit.decide("query", "threshold", {"appearance_spread": 0.0, "views": 1})
+        fit.decide("query", "threshold", _evidence())
+
+
+def test_the_papers_values_are_the_stage_defaults_paper_toml_pins():
+    paper = _flat(ROOT / "configs" / "paper.toml")
+    for stage, fields in fit.FITTED.items():
+        for field in fields:
+            assert fit.paper_value(stage, field) == paper[stage][field], field
+    assert fit.paper_value("reconstruct", "wild") is True
+    assert fit.paper_value("render-appearances", "n_appearances") == 4
+
+
+@pytest.mark.parametrize(
+    "over, said",
+    [
+        ({"points": 0, "views": 0}, "no sparse points in the scene's model"),
+        ({"views": 1}, "only 1 of 12 photos sees 30 or more of the 4000 sparse points"),
+        ({"photos": 60, "read": 48, "views": 0, "points": 25},
+         "only 0 of 48 photos see 30 or more of the 25 sparse points"),
+    ],
+    ids=["no-points", "one-photo", "too-few-points"],
+)  # fmt: skip
+def test_missing_evidence_keeps_the_papers_values_and_says_why(over, said):
+    """No spread to measure is not "no appearance change": the paper's in-the-wild
+    model and N = 4, the reason named, and the --set that chooses by hand."""
+    ev = _evidence(appearance_spread=0.0, **over)  # what photo_gains gives then
+    wild, why = fit.decide("reconstruct", "wild", ev)
+    assert wild is True and why.startswith(said)
+    assert fit.missing("reconstruct", "wild", ev) == said
+    assert "kept the paper's value" in why and "--set reconstruct.wild=false" in why
+    n, why = fit.decide("render-appearances", "n_appearances", ev)
+    assert n == 4 and why.startswith(said)
+    assert "--set render-appearances.n_appearances=1" in why
+    grid, why = fit.decide("extract-features", "sam_points_per_side", ev)
+    assert grid == 8 and "short side 72 px" in why  # the photos' size is known
+    assert fit.missing("extract-features", "sam_points_per_side", ev) is None
+
+
+def test_without_photos_every_decision_keeps_the_papers_value():
+    ev = _evidence(photos=0, read=0, views=0, appearance_spread=0.0, short_side=0)
+    for stage, fields in fit.FITTED.items():
+        for field in fields:
+            value, why = fit.decide(stage, field, ev)
+            assert value == fit.paper_value(stage, field), field
+            assert why.startswith("no train photos in the scene"), why
+    assert fit.decide("extract-features", "sam_points_per_side", ev)[0] == 32
 
 
 # ------------------------------------------- extract-features: which images --
@@ -138,14 +195,33 @@ def _chain(tmp_path: Path, scene: Path, **sets: list[str]) -> Chain:
 
 
 class _Keep(logging.Handler):
-    """The messages logged to the logger it is added to."""
+    """The messages logged to the logger it is added to (`warnings`: those at
+    WARNING and above)."""
 
     def __init__(self) -> None:
         super().__init__(logging.INFO)
         self.lines: list[str] = []
+        self.warnings: list[str] = []
 
     def emit(self, record: logging.LogRecord) -> None:
         self.lines.append(record.getMessage())
+        if record.levelno >= logging.WARNING:
+            self.warnings.append(record.getMessage())
+
+
+@contextlib.contextmanager
+def _kept() -> Iterator[_Keep]:
+    """What ptovs.fit logs within (its own handler: a CLI run earlier in this
+    process stops "ptovs" propagating)."""
+    keep = _Keep()
+    logger = logging.getLogger("ptovs.fit")
+    logger.addHandler(keep)
+    level, logger.level = logger.level, logging.INFO
+    try:
+        yield keep
+    finally:
+        logger.removeHandler(keep)
+        logger.setLevel(level)
 
 
 def test_auto_is_decided_before_the_key_and_keys_as_the_value(tmp_path, tiny_scene_dir):
@@ -155,18 +231,11 @@ def test_auto_is_decided_before_the_key_and_keys_as_the_value(tmp_path, tiny_sce
         "reconstruct": ['wild="auto"'],
         "render-appearances": ["n_appearances=auto"],
     }
-    keep = _Keep()
-    logger = logging.getLogger("ptovs.fit")  # its own handler: a CLI run earlier in
-    logger.addHandler(keep)  # this process stops "ptovs" propagating
-    level, logger.level = logger.level, logging.INFO
-    try:
+    with _kept() as keep:
         chain = _chain(tmp_path, tiny_scene_dir, **auto)
         assert chain.config("reconstruct").wild is True
         assert chain.config("render-appearances").n_appearances == 4
-    finally:
-        logger.removeHandler(keep)
-        logger.setLevel(level)
-    assert len(keep.lines) == 2, keep.lines
+    assert len(keep.lines) == 2 and not keep.warnings, keep.lines
     assert "reconstruct: wild = true (auto: appearance spread" in keep.lines[0]
     by_hand = _chain(
         tmp_path, tiny_scene_dir, reconstruct=["wild=true"],
@@ -210,11 +279,111 @@ def test_a_value_given_is_never_fitted(tmp_path, tiny_scene_dir, monkeypatch):
     chain.key("train-male")  # nothing "auto" anywhere in the chain
 
 
-def test_evidence_under_read_only_writes_nothing(tmp_path, tiny_scene_dir):
+def test_evidence_under_read_only_waits_for_the_checks(tmp_path, tiny_scene_dir):
+    """Read-only (a command's checks, status) writes nothing; the evidence is
+    written when the checks pass and dropped when they fail."""
+    cache = tmp_path / "work" / "tiny_s0" / "fit.json"
+    flush_fingerprints(write=False)  # nothing left pending by an earlier test
     chain = _chain(tmp_path, tiny_scene_dir, reconstruct=["wild=auto"])
     with read_only():
         assert chain.config("reconstruct").wild is True
-    assert not (tmp_path / "work" / "tiny_s0" / "fit.json").exists()
+    assert not cache.exists()
+    flush_fingerprints(write=False)  # the checks failed
+    assert not cache.exists()
+    chain = _chain(tmp_path, tiny_scene_dir, reconstruct=["wild=auto"])
+    with read_only():
+        assert chain.config("reconstruct").wild is True
+    assert not cache.exists()
+    flush_fingerprints(write=True)  # the checks passed
+    assert json.loads(cache.read_text())["scene_key"] == chain.scene.key()
+
+
+def _drop_points(scene: Path, kept: int) -> None:
+    """Keep only the first `kept` sparse points of the scene's COLMAP model."""
+    import pycolmap
+
+    sparse = scene / "dense" / "sparse"
+    rec = pycolmap.Reconstruction(str(sparse))
+    for pid in sorted(rec.point3D_ids())[kept:]:
+        rec.delete_point3D(pid)
+    rec.write(str(sparse))
+
+
+@pytest.mark.parametrize(
+    "kept, said",
+    [(0, "no sparse points in the scene's model"),
+     (25, "only 0 of 12 photos see 30 or more of the 25 sparse points")],
+    ids=["no-points", "too-few-points"],
+)  # fmt: skip
+def test_a_scene_whose_points_say_nothing_keeps_the_papers_model(
+    tmp_path, scene_copy, kept, said
+):
+    """tiny with its sparse points removed (or all but 25): the appearance cannot
+    be measured, so "auto" keeps the wild model and 4 appearances, keyed as those
+    values given by hand, with one warning each naming what was missing."""
+    _drop_points(scene_copy, kept)
+    auto = {
+        "reconstruct": ["wild=auto"],
+        "render-appearances": ["n_appearances=auto"],
+    }
+    with _kept() as keep:
+        chain = _chain(tmp_path, scene_copy, **auto)
+        assert chain.config("reconstruct").wild is True
+        assert chain.config("render-appearances").n_appearances == 4
+    assert len(keep.warnings) == 2, keep.lines
+    assert keep.warnings[0].startswith(f"reconstruct: wild = true (auto: {said}")
+    assert "kept the paper's value" in keep.warnings[0]
+    assert "--set reconstruct.wild=false" in keep.warnings[0]
+    assert keep.warnings[1].startswith(
+        f"render-appearances: n_appearances = 4 (auto: {said}"
+    )
+    by_hand = _chain(
+        tmp_path, scene_copy, reconstruct=["wild=true"],
+        **{"render-appearances": ["n_appearances=4"]},
+    )  # fmt: skip
+    assert chain.key("render-appearances") == by_hand.key("render-appearances")
+    blob = json.loads((tmp_path / "work" / "tiny_s0" / "fit.json").read_text())
+    assert blob["evidence"]["points"] == kept and blob["evidence"]["views"] == 0
+    assert blob["evidence"]["read"] == 12
+
+
+def test_an_ordinary_run_caches_the_evidence_and_status_writes_none(
+    tmp_path, tiny_scene_dir, monkeypatch
+):
+    """status reads the photos and writes nothing; a command whose checks fail
+    writes nothing; one that runs leaves fit.json, and the next command reads it
+    instead of the photos."""
+    from click.testing import CliRunner
+
+    from conftest import run_cli
+    from ptovs.cli import main
+
+    monkeypatch.setattr(fit, "_MEASURED", {}, raising=False)  # measured afresh here
+    work = tmp_path / "work"
+    auto = ("--config", str(ROOT / "configs" / "auto.toml"))
+    data = ("--data", str(tiny_scene_dir))
+    out = run_cli(work, *auto, "status", *data)
+    assert "reconstruct: wild = true (auto:" in out
+    assert not work.exists()  # not fit.json, not anything
+    failed = CliRunner().invoke(main, [
+        "--work-dir", str(work), *auto, "extract-features", *data,
+        "--set", "encoder=openclip", "--set", f"clip_checkpoint={tmp_path / 'no.pt'}",
+    ])  # fmt: skip
+    assert failed.exit_code != 0 and "no.pt" in failed.output, failed.output
+    assert not work.exists()
+    run_cli(work, *auto, "reconstruct", *data, "--set", "iterations=30")
+    cache = work / "tiny_s0" / "fit.json"
+    blob = json.loads(cache.read_text())
+    assert blob["version"] == fit.EVIDENCE_VERSION and blob["evidence"]["views"] == 12
+
+    def unread(scene):
+        raise AssertionError("the photos were read again")
+
+    monkeypatch.setattr(fit, "photo_evidence", unread)
+    monkeypatch.setattr(fit, "_MEASURED", {}, raising=False)  # a new process
+    out = run_cli(work, *auto, "reconstruct", *data, "--set", "iterations=30")
+    assert "reconstruct: wild = true (auto:" in out
+    assert json.loads(cache.read_text()) == blob
 
 
 def test_a_wrong_auto_is_refused_naming_the_key(tmp_path, tiny_scene_dir):

@@ -15,20 +15,28 @@ point is projected into up to `MAX_VIEWS` train photos; per photo, the median
 log-ratio of its colour at the points to each point's median colour over the
 photos is the photo's exposure-and-tint gain. Their spread over the photos says
 whether the photos share one appearance. Nothing is trained; it takes a few
-seconds, and it is cached by the scene's content key in the work dir.
+seconds, and it is cached by the scene's content key in `<work>/<scene>/fit.json`
+(written once a command's checks pass; never by `ptovs status`).
+
+Missing evidence is never a decision: where the spread cannot be measured (no
+sparse points, or fewer than two photos seeing MIN_OBSERVATIONS of them), each
+appearance decision keeps the paper's value (the stage's default) and says so in
+a warning naming what was missing and the `--set` that chooses by hand.
 
 Decisions:
 - `reconstruct.wild`: the in-the-wild model (appearance embedding, transient
   masks) when the photos' appearance spread exceeds `WILD_SPREAD`, else plain
-  3DGS (same code, no networks: about 2.5× faster a step).
+  3DGS (same code, no networks: about 2.5× faster a step); unmeasured: the
+  paper's in-the-wild model.
 - `render-appearances.n_appearances`: 1 (the self render only) when the photos
-  share one appearance; else the paper's N = 4.
+  share one appearance; else (or unmeasured) the paper's N = 4.
   extract-features then encodes the photo and its self render alone (2 images
   a view instead of N + 1 = 5).
 - `extract-features.images` is decided in the stage, not here: it needs the
   renders (`appearance_sensitivity`, `images_decision`; kept in the artifact).
 - `extract-features.sam_points_per_side`: a prompt every `SAM_PITCH_PX` pixels of
-  the working short side, 8 to 32 a side (SAM-class segmenters only).
+  the working short side, 8 to 32 a side (SAM-class segmenters only); with no
+  photos, the paper's 32.
 """
 
 from __future__ import annotations
@@ -44,7 +52,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-EVIDENCE_VERSION = 1
+EVIDENCE_VERSION = 2  # 2: `read` (photos read) added
 MAX_VIEWS = 48
 """Train photos the evidence reads (evenly spaced by name): enough for a spread."""
 MAX_POINTS = 4000
@@ -135,17 +143,20 @@ def _project(view: Any, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def photo_evidence(scene: Any, seed: int = 0) -> dict[str, Any]:
     """What the scene's photos say about it (see the module docstring).
 
-    Returns a JSON-ready dict: `views` and `points` read, `appearance_spread` (the
-    robust spread of the log gains over photos), `outliers` (share of
+    Returns a JSON-ready dict: `photos` (train photos in the scene), `read`
+    (photos read, at most MAX_VIEWS), `views` (of those, the photos that give a
+    gain: MIN_OBSERVATIONS or more points seen), `points` (sparse points
+    projected), `appearance_spread` (the robust spread of the log gains over
+    photos; 0 when fewer than two photos give one), `outliers` (share of
     observations off their photo's gain by a factor of 1.5), `short_side` (median
-    working short side, px), `photos` (train photos in the scene).
+    working short side, px).
     """
     import cv2
 
     train = scene.train_views()
     step = max(1, math.ceil(len(train) / MAX_VIEWS))
     views = train[::step][:MAX_VIEWS]
-    xyz = np.asarray(scene.points_xyz, np.float64)
+    xyz = np.asarray(scene.points_xyz, np.float64).reshape(-1, 3)
     if len(xyz) > MAX_POINTS:
         pick = np.random.default_rng(seed).choice(len(xyz), MAX_POINTS, replace=False)
         xyz = xyz[np.sort(pick)]
@@ -162,6 +173,7 @@ def photo_evidence(scene: Any, seed: int = 0) -> dict[str, Any]:
     return {
         "version": EVIDENCE_VERSION,
         "photos": len(train),
+        "read": len(views),
         "views": int(len(gains)),
         "points": int(len(xyz)),
         "appearance_spread": round(_gain_spread(gains), 4),
@@ -170,11 +182,18 @@ def photo_evidence(scene: Any, seed: int = 0) -> dict[str, Any]:
     }
 
 
+_MEASURED: dict[str, dict[str, Any]] = {}
+"""Evidence measured in this process, by scene key: the decisions of one command
+(read-only checks first, then the stages) read the photos once."""
+
+
 def cached_evidence(scene_ref: Any) -> dict[str, Any]:
     """`photo_evidence` of the scene, cached in `<work>/<scene>/fit.json` by the
-    scene's content key (nothing is written under `ptovs.keys.read_only`)."""
+    scene's content key. Under `ptovs.keys.read_only` (a command's checks, `ptovs
+    status`) the file is written only once the checks pass
+    (`ptovs.keys.write_when_checked`), so `status` writes nothing."""
     from ptovs.artifacts import write_atomic
-    from ptovs.keys import READ_ONLY
+    from ptovs.keys import READ_ONLY, write_when_checked
 
     key = scene_ref.key()
     path = Path(scene_ref.work_dir) / scene_ref.name / "fit.json"
@@ -184,9 +203,13 @@ def cached_evidence(scene_ref: Any) -> dict[str, Any]:
             return dict(blob["evidence"])
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         pass
-    evidence = photo_evidence(scene_ref.load())
-    if not READ_ONLY.get():
-        blob = {"version": EVIDENCE_VERSION, "scene_key": key, "evidence": evidence}
+    if key not in _MEASURED:
+        _MEASURED[key] = photo_evidence(scene_ref.load())
+    evidence = dict(_MEASURED[key])
+    blob = {"version": EVIDENCE_VERSION, "scene_key": key, "evidence": evidence}
+    if READ_ONLY.get():
+        write_when_checked(path, json.dumps(blob))
+    else:
         write_atomic(path, json.dumps(blob))
     return evidence
 
@@ -197,8 +220,65 @@ def shared_appearance(evidence: dict[str, Any]) -> bool:
     return evidence["appearance_spread"] <= WILD_SPREAD
 
 
+def paper_value(stage: str, field: str) -> Any:
+    """The paper's value of a fitted field: the stage Config's default (the value
+    configs/paper.toml pins)."""
+    from ptovs.registry import get_stage
+
+    fields = dataclasses.fields(get_stage(stage).config_cls)
+    return next(f.default for f in fields if f.name == field)
+
+
+MEASURES = {
+    ("reconstruct", "wild"): ("the photos' appearance spread", "false"),
+    ("render-appearances", "n_appearances"): ("the photos' appearance spread", "1"),
+    ("extract-features", "sam_points_per_side"): ("the working short side", "N"),
+}
+"""Per fitted field: what its evidence measures, and the value a warning offers to
+set by hand where that evidence is missing (the cheaper choice)."""
+
+
+def missing(stage: str, field: str, evidence: dict[str, Any]) -> str | None:
+    """What the evidence lacks for this decision, in words; None when it has it.
+
+    The appearance decisions need a spread: sparse points, and at least two
+    photos that each see MIN_OBSERVATIONS of them. The SAM grid needs a photo.
+    """
+    photos = evidence.get("photos")
+    if photos == 0:
+        return "no train photos in the scene"
+    if (stage, field) == ("extract-features", "sam_points_per_side"):
+        return None
+    points = evidence.get("points")
+    if points == 0:
+        return "no sparse points in the scene's model"
+    seen = evidence["views"]
+    if seen < 2:
+        read = evidence.get("read", photos)
+        return (
+            f"only {seen} of {read} photos {'sees' if seen == 1 else 'see'} "
+            f"{MIN_OBSERVATIONS} or more of the {points} sparse points"
+        )
+    return None
+
+
 def decide(stage: str, field: str, evidence: dict[str, Any]) -> tuple[Any, str]:
-    """The value of `stage.field` under "auto", and the evidence in words."""
+    """The value of `stage.field` under "auto", and the evidence in words.
+
+    Where the evidence is missing (`missing`), the paper's value, and why."""
+    if (stage, field) not in MEASURES:
+        raise KeyError(f"{stage}.{field} cannot be 'auto'")
+    gap = missing(stage, field, evidence)
+    if gap is not None:  # missing evidence is not "no appearance change"
+        what, by_hand = MEASURES[stage, field]
+        return paper_value(stage, field), (
+            f"{gap}, so {what} cannot be measured: kept the paper's value; "
+            f"choose by hand with --set {stage}.{field}={by_hand}"
+        )
+    if (stage, field) == ("extract-features", "sam_points_per_side"):
+        side = evidence["short_side"]
+        n = int(min(32, max(8, round(side / SAM_PITCH_PX))))
+        return n, f"working short side {side} px, a prompt every {SAM_PITCH_PX} px"
     spread = evidence["appearance_spread"]
     why = (
         f"appearance spread {spread:.3f} "
@@ -208,18 +288,13 @@ def decide(stage: str, field: str, evidence: dict[str, Any]) -> tuple[Any, str]:
     one = shared_appearance(evidence)
     if (stage, field) == ("reconstruct", "wild"):
         return (not one), why
-    if (stage, field) == ("render-appearances", "n_appearances"):
-        return (1 if one else 4), why
-    if (stage, field) == ("extract-features", "sam_points_per_side"):
-        side = evidence["short_side"]
-        n = int(min(32, max(8, round(side / SAM_PITCH_PX))))
-        return n, f"working short side {side} px, a prompt every {SAM_PITCH_PX} px"
-    raise KeyError(f"{stage}.{field} cannot be 'auto'")
+    return (1 if one else paper_value(stage, field)), why
 
 
 def resolve(stage: str, config: Any, scene_ref: Any) -> Any:
     """`config` with every "auto" of `FITTED[stage]` decided for this scene (one
-    line each, on the log); `config` itself when it has none."""
+    line each, on the log: a warning where the evidence is missing); `config`
+    itself when it has none."""
     fields = [f for f in FITTED.get(stage, ()) if getattr(config, f, None) == "auto"]
     if not fields:
         return config
@@ -229,7 +304,8 @@ def resolve(stage: str, config: Any, scene_ref: Any) -> Any:
         value, why = decide(stage, f, evidence)
         changes[f] = value
         if _matters(stage, f, config):
-            log.info("%s: %s = %s (auto: %s)", stage, f, json.dumps(value), why)
+            level = logging.WARNING if missing(stage, f, evidence) else logging.INFO
+            log.log(level, "%s: %s = %s (auto: %s)", stage, f, json.dumps(value), why)
     return dataclasses.replace(config, **changes)
 
 
@@ -323,6 +399,8 @@ __all__ = [
     "WILD_SPREAD",
     "cached_evidence",
     "decide",
+    "missing",
+    "paper_value",
     "photo_evidence",
     "photo_gains",
     "resolve",
