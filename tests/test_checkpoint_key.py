@@ -215,7 +215,8 @@ def test_status_shows_stale_when_the_checkpoint_changed(
     def line() -> str:
         r = CliRunner().invoke(cli, [*base, "status", "--data", str(scene_copy)])
         assert r.exit_code == 0, r.output
-        return next(x for x in r.output.splitlines() if "toy-weights" in x)
+        return next(x for x in r.output.splitlines()
+                    if x.strip().startswith("toy-weights "))  # fmt: skip
 
     r = CliRunner().invoke(cli, [*base, "toy-weights", "--data", str(scene_copy)])
     assert r.exit_code == 0, r.output

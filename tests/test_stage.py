@@ -203,15 +203,31 @@ def test_status_says_corrupt_when_an_artifacts_identity_was_changed(env):
     assert "done" in line
 
 
-def test_missing_input_after_an_override_names_the_override(env):
-    """export-ply after `reconstruct --set iterations=400` used to say only "no
-    reconstruct artifact": the message now lists the existing artifacts' overrides."""
+def test_a_stage_commands_override_is_kept_for_the_next_command(env):
+    """export-ply after `reconstruct --set iterations=400` used to say "no
+    reconstruct artifact": the scene now records a stage command's --set items, so
+    the next command without --config reads the same chain."""
     invoke, data = env["invoke"], str(env["data"])
     invoke("toy-views", "--data", data, "--set", "gain=2")
-    res = invoke("toy-sum", "--data", data, ok=False)
+    res = invoke("toy-sum", "--data", data)
+    assert "using the config recorded for tiny_s0" in res.output
+    assert "--set toy-views.gain=2" in res.output
+    assert len(_h5(env["work"], "toy-views")) == 1  # not rebuilt at the default
+
+
+def test_missing_input_under_other_settings_names_the_override(env, tmp_path):
+    """With a --config the artifact was not made with, the missing input's message
+    lists the existing artifacts' overrides."""
+    invoke, data = env["invoke"], str(env["data"])
+    invoke("toy-views", "--data", data, "--set", "gain=2")
+    other = tmp_path / "other.toml"
+    other.write_text("[toy-sum]\nscale = 1.0\n")
+    res = invoke("--config", str(other), "toy-sum", "--data", data, ok=False)
     assert res.exit_code == 1 and "Traceback" not in res.output
     assert "made with --set toy-views.gain=2" in res.output, res.output
-    invoke("--set", "toy-views.gain=2", "toy-sum", "--data", data)  # as it says
+    assert f"run: ptovs --config {other} toy-views" in res.output  # its settings
+    invoke("--config", str(other), "--set", "toy-views.gain=2", "toy-sum",
+           "--data", data)  # as it says  # fmt: skip
 
 
 def test_corrupt_artifact_is_recomputed(env):

@@ -72,7 +72,18 @@ class RunContext:
     overrides: dict[str, Any] = field(default_factory=dict)
     """A command's own options over the config (`with_overrides`): they stay on
     top of a scene's recorded config too."""
+    advice: str = ""
+    """The group's options to repeat in the commands this context advises
+    (`Chain.hint`): `--config A --set X=1 `, or "" where none were given."""
     _scenes: dict[str, RunContext] = field(default_factory=dict, repr=False)
+    _commands: dict[tuple, RunContext] = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.given is not None and not self.advice:
+            origin = (
+                self.given.origin() if (self.given.files or self.given.sets) else ""
+            )
+            self.advice = f"{origin} " if origin else ""
 
     @property
     def store(self) -> Store:
@@ -81,12 +92,28 @@ class RunContext:
     def with_overrides(self, over: dict[str, Any]) -> RunContext:
         """This context with a command's own config values on top."""
         return RunContext(self.work_dir, merge(self.config, over), self.force,
-                          self.given, merge(self.overrides, over))  # fmt: skip
+                          self.given, merge(self.overrides, over),
+                          self.advice)  # fmt: skip
+
+    def with_command(self, name: str, items: Iterable[str]) -> RunContext:
+        """This context for command `name` with its own --set items
+        (SECTION.KEY=VALUE): they are recorded with the scene's settings
+        (`ptovs.scene_config`). The same context for the same command and items."""
+        if self.given is None:
+            return self
+        key = (name, tuple(items))
+        if key not in self._commands:
+            self._commands[key] = RunContext(
+                self.work_dir, self.config, self.force,
+                self.given.with_command(name, key[1]), self.overrides, self.advice,
+            )  # fmt: skip
+        return self._commands[key]
 
     def for_scene(self, scene: str) -> RunContext:
-        """The context for one scene: without --config, the config recorded for
-        it (`ptovs.scene_config`), said in one line; with --config, that file,
-        recorded for the scene once the command's checks pass. Once per scene."""
+        """The context for one scene: without --config, the settings recorded for
+        it (`ptovs.scene_config`), said in one line; with --config, those files.
+        The command's settings are recorded for the scene once its checks pass.
+        Once per scene."""
         if self.given is None:
             return self
         if scene not in self._scenes:
@@ -95,7 +122,7 @@ class RunContext:
             config = scene_config(self.work_dir, scene, self.given, self.config,
                                   self.overrides)  # fmt: skip
             self._scenes[scene] = RunContext(
-                self.work_dir, config, self.force, None, self.overrides
+                self.work_dir, config, self.force, None, self.overrides, self.advice
             )
         return self._scenes[scene]
 
@@ -220,7 +247,10 @@ class Chain:
 
     def hint(self, stage: str) -> str:
         """The command that makes `stage`, with the folder the user gave as --data."""
-        return f"ptovs {stage} --scene {self.scene.name} --data {self.scene.source}"
+        return (
+            f"ptovs {self.ctx.advice}{stage} --scene {self.scene.name} "
+            f"--data {self.scene.source}"
+        )
 
     def inputs(self, stage: str) -> Any:
         """The stage's `Inputs`, with every upstream artifact verified and opened."""

@@ -172,12 +172,14 @@ def _setup_logging(verbose: int, quiet: int) -> None:
 )
 @click.option(
     "--config",
-    "config_file",
+    "config_files",
     type=click.Path(path_type=Path),
-    default=None,
-    help="TOML file with one [section] per stage plus [scene]. Recorded for the "
-    "scene once a command runs stages with it (<work>/<scene>/config.json): later "
-    "commands on that scene without --config use the recorded one, and say so.",
+    multiple=True,
+    help="TOML file with one [section] per stage plus [scene]; repeatable, later "
+    "files winning key by key (--config configs/auto.toml --config "
+    "configs/photos-cpu.toml). A command's settings (its files and every --set) are "
+    "recorded for the scene once it runs stages (<work>/<scene>/config.json): later "
+    "commands on that scene without --config use them, and say so.",
 )
 @click.option(
     "--set",
@@ -204,7 +206,7 @@ def _setup_logging(verbose: int, quiet: int) -> None:
 def main(
     ctx: click.Context,
     work_dir: Path | None,
-    config_file: Path | None,
+    config_files: tuple[Path, ...],
     sets: tuple[str, ...],
     force: bool,
     threads: int | None,
@@ -238,7 +240,7 @@ def main(
 
     flush_fingerprints(write=False)  # nothing left pending by an earlier call
     try:
-        given = GivenConfig.read(config_file, sets)
+        given = GivenConfig.read(config_files, sets)
         config = given.config()
         if config:
             from ptovs.config import check_config
@@ -358,6 +360,7 @@ def _status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:
     click.echo(f"work dir: {Path(obj.work_dir).resolve()}")
 
     name, folder, photos = scene_source(scene_name, data)
+    given = obj.given
     obj = obj.for_scene(name)  # the config recorded for the scene, without --config
     sfm_line = None
     if photos is not None:
@@ -365,7 +368,8 @@ def _status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:
         if state != "done":
             click.echo(f"scene {name}: {photos} (unposed photos)")
             click.echo(
-                f"  {SFM:<20} {key[:12]}  {state:<8} run: ptovs sfm --data {folder}"
+                f"  {SFM:<20} {key[:12]}  {state:<8} run: ptovs {obj.advice}sfm "
+                f"--data {folder}"
             )
             return
         sfm_line = f"  {SFM:<20} {key[:12]}  done     {photos}"
@@ -383,6 +387,11 @@ def _status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:
         f"{n_lab} labelled), {len(scene.points_xyz)} points, "
         f"downscale r={scene.downscale}"
     )
+    if given is not None and not given.files:  # the recorded settings it keys with
+        from ptovs.scene_config import history_lines
+
+        for line in history_lines(obj.work_dir, ref.name):
+            click.echo(f"  {line}")
     if sfm_line:
         click.echo(sfm_line)
     click.echo(f"  {'scene':<20} {ref.key()[:12]}  input")

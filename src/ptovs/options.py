@@ -127,6 +127,12 @@ def variant_chain(
     from ptovs.variants import variant_sets
 
     split = split_sets(sets, (*PIPELINE, *REGISTRY, SCENE), default)
+    # the command's own --set items are part of the settings the scene records
+    click_ctx = click.get_current_context(silent=True)
+    name = (click_ctx.info_name if click_ctx else None) or default or "ptovs"
+    ctx = ctx.with_command(
+        name, [f"{sec}.{item}" for sec, items in split.items() for item in items]
+    )
     last = until or default
     extract = "extract-features"
     needs = last in PIPELINE and PIPELINE.index(last) >= PIPELINE.index(extract)

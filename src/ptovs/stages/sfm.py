@@ -42,6 +42,7 @@ def command(
             "no photos: sfm takes a folder of unposed photos (DIR/images/* or DIR/*)"
         )
     items = split_sets(sets, (SFM,), default=SFM)[SFM]
-    ctx = obj.for_scene(name).with_overrides(parse_sets(items, SFM))
+    ctx = obj.with_command(SFM, [f"{SFM}.{i}" for i in items]).for_scene(name)
+    ctx = ctx.with_overrides(parse_sets(items, SFM))
     key, state, out = pose_photos(ctx, name, photos, run=True, force=force or obj.force)
     click.echo(f"{SFM}: {out} (key {key[:12]}, {state})")
