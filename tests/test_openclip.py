@@ -478,6 +478,60 @@ def test_bf16_is_fast_reads_the_cpu_before_timing_anything(monkeypatch):
     assert out["fp32_s"] > 0 and out["bf16_s"] > 0 and out["speedup"] > 0
 
 
+def test_auto_precision_asks_the_cpu_before_segmenting_a_sample(tmp_path, monkeypatch):
+    """extract-features' precision "auto": on a CPU without bf16 instructions the
+    answer is fp32 with its reason, stored once, and no sample is segmented (SAM
+    ViT-H would take minutes on it); where bf16 may be faster, the sample is
+    segmented and the full check runs on its crops."""
+    import json
+
+    from ptovs.artifacts import Notes
+    from ptovs.encoders import openclip
+    from ptovs.segment import NO_SEGMENT, Level
+    from ptovs.stages.extract_features import decide_precision
+
+    segmented: list[int] = []
+
+    def sample():  # the first view, segmented: two halves at one level
+        segmented.append(1)
+        image = (_crops(1, 64)[0] * 255).astype(np.uint8)
+        labels = np.full((64, 64), NO_SEGMENT, np.int32)
+        labels[:, :32], labels[:, 32:] = 0, 1
+        return [Level(labels)], image
+
+    def no_probe(width):
+        raise AssertionError("the matmul probe ran")
+
+    monkeypatch.setattr(openclip, "_cpu_flags", lambda: set())  # e.g. plain AVX2
+    monkeypatch.setattr(openclip, "_matmul_probe", no_probe)
+    tiny = openclip.register_tiny()
+    enc = openclip.OpenClipEncoder(tiny, random_weights=True, precision="auto")
+    notes = Notes(tmp_path / "a", "key-a")
+    report = decide_precision(enc, notes, sample, enc.size)
+    assert segmented == [], "a sample was segmented where bf16 cannot be faster"
+    assert report["precision"] == "fp32" and enc.precision == "fp32"
+    assert report["reason"] == "bf16 not faster on this CPU" and report["crops"] == 0
+    assert (
+        report["bf16_probe"]["bf16_flags"] == []
+        and report["bf16_probe"]["probe"] is None
+    )
+    assert notes.get("precision") == json.loads(json.dumps(report))  # kept, as JSON
+    # the same report as the check's own where bf16 is not faster
+    full = enc.check_precision(_crops(3, enc.size))
+    assert set(report) == set(full) and full["reason"] == report["reason"]
+
+    monkeypatch.setattr(openclip, "_cpu_flags", lambda: {"avx512f", "avx512_bf16"})
+    monkeypatch.setattr(
+        openclip, "_matmul_probe",
+        lambda w: {"fp32_s": 0.02, "bf16_s": 0.01, "speedup": 2.0},
+    )  # fmt: skip
+    enc = openclip.OpenClipEncoder(tiny, random_weights=True, precision="auto")
+    report = decide_precision(enc, Notes(tmp_path / "b", "key-b"), sample, enc.size)
+    assert segmented == [1]  # bf16 may pay here: the sample decides
+    assert report["crops"] == 2 and report["bf16_probe"]["probe"]["speedup"] == 2.0
+    assert "seconds" in report  # bf16 was tried on the sample's crops
+
+
 def test_bf16_is_upstreams_pure_bf16_encode_image(tmp_path):
     """precision "bf16" is open_clip's `precision="pure_bf16"` model's own
     encode_image on a bf16 input, to the bit."""
@@ -597,15 +651,24 @@ def test_a_hugging_face_text_tower_never_downloads(tmp_path, monkeypatch):
         assert net.text.config.hidden_size == 32
 
 
-def test_extract_features_records_the_precision_it_kept(tiny_scene_dir, tmp_path):
-    """extract-features with precision "auto" on the tiny scene's photos: the
-    check runs on the first view's crops, and levels_json says what was kept."""
+def test_extract_features_records_the_precision_it_kept(
+    tiny_scene_dir, tmp_path, monkeypatch
+):
+    """extract-features with precision "auto" on the tiny scene's photos, on a CPU
+    where bf16 may be faster: the check runs on the first view's crops, and
+    levels_json says what was kept."""
     from click.testing import CliRunner
 
     from ptovs.artifacts import Artifact, read_json_dataset
     from ptovs.cli import main as cli
+    from ptovs.encoders import openclip
     from ptovs.encoders.openclip import build_net, register_tiny
 
+    monkeypatch.setattr(openclip, "_cpu_flags", lambda: {"avx512f", "avx512_bf16"})
+    monkeypatch.setattr(
+        openclip, "_matmul_probe",
+        lambda w: {"fp32_s": 0.02, "bf16_s": 0.01, "speedup": 2.0},
+    )  # fmt: skip
     name = register_tiny()
     ckpt = tmp_path / "tiny.pt"
     torch.manual_seed(0)

@@ -39,7 +39,8 @@ its own `encode_image` on a bfloat16 input, normalised in fp32. "auto" asks
 `bf16_is_fast` (CPU capability and flags, a short matmul probe) and, only where
 bf16 can be faster, encodes a sample of the scene's own crops both ways
 (`check_precision`); bf16 is kept only where it agrees with fp32 within the bars
-below and was faster on it.
+below and was faster on it. `precision_without_sample` asks first, so where bf16
+cannot be faster no sample is segmented at all.
 """
 
 from __future__ import annotations
@@ -608,6 +609,34 @@ class OpenClipEncoder:
         out = self._encode(crops, precision)
         return out, time.perf_counter() - t0
 
+    def _precision_report(self, crops: int, evidence: dict) -> dict[str, Any]:
+        """The fields every precision report has: what was checked, on how many
+        crops, `bf16_is_fast`'s evidence and the bar."""
+        return {
+            "checked": "bf16",
+            "crops": int(crops),
+            "bf16_probe": evidence,
+            "bar": {
+                "worst_centred_cosine": MIN_CENTRED_COSINE,
+                "top1_agreement": MIN_TOP1_AGREEMENT,
+                "worst_relevancy_change": MAX_RELEVANCY_CHANGE,
+            },
+        }
+
+    def _not_faster(self, crops: int, evidence: dict) -> dict[str, Any]:
+        """fp32 kept where `bf16_is_fast` says no: nothing run in bf16."""
+        self.precision, self._fast = "fp32", None
+        where = "this CPU" if self.device.type == "cpu" else "this device"
+        return {"precision": "fp32", "reason": f"bf16 not faster on {where}",
+                **self._precision_report(crops, evidence)}  # fmt: skip
+
+    def precision_without_sample(self) -> dict | None:
+        """`check_precision`'s fp32 report where `bf16_is_fast` says bf16 cannot
+        be faster here (`crops` 0: no sample is needed, so none is segmented);
+        None where it may be faster, and a sample must decide."""
+        fast, evidence = bf16_is_fast(self.device, self.width)
+        return None if fast else self._not_faster(0, evidence)
+
     def check_precision(self, crops: np.ndarray) -> dict:
         """Decide precision "auto" on `crops` (a sample of the scene's own).
 
@@ -628,21 +657,10 @@ class OpenClipEncoder:
         """
         crops = np.asarray(crops)
         fast, evidence = bf16_is_fast(self.device, self.width)
-        report: dict[str, Any] = {
-            "checked": "bf16",
-            "crops": int(len(crops)),
-            "bf16_probe": evidence,
-            "bar": {
-                "worst_centred_cosine": MIN_CENTRED_COSINE,
-                "top1_agreement": MIN_TOP1_AGREEMENT,
-                "worst_relevancy_change": MAX_RELEVANCY_CHANGE,
-            },
-        }
-        self.precision, self._fast = "fp32", None
         if not fast:
-            where = "this CPU" if self.device.type == "cpu" else "this device"
-            return {"precision": "fp32", "reason": f"bf16 not faster on {where}",
-                    **report}  # fmt: skip
+            return self._not_faster(len(crops), evidence)
+        report = self._precision_report(len(crops), evidence)
+        self.precision, self._fast = "fp32", None
         trial = crops[: min(8, len(crops))]
         seconds: dict[str, Any] = {}
         for p in ("fp32", "bf16"):

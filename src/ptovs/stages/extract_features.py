@@ -360,6 +360,19 @@ def check_precision(encoder: Encoder, levels: list, image, crop_size: int):
     return report
 
 
+def _probe_words(probe: dict) -> str:
+    """`bf16_is_fast`'s evidence in a few words, for the log."""
+    if probe.get("device") == "cuda":
+        return "no bf16 on this CUDA device"
+    if probe.get("probe"):
+        return (f"a bf16 matmul of width {probe['probe']['width']} ran "
+                f"{probe['probe']['speedup']:.2f}x fp32's speed")  # fmt: skip
+    found = probe.get("bf16_flags") or []
+    if not found:
+        return f"no bf16 instructions (CPU capability {probe.get('capability')})"
+    return f"bf16 flags {', '.join(found)} on {probe.get('device')}"
+
+
 def decide_precision(
     encoder: Encoder,
     notes: Notes | None,
@@ -371,8 +384,11 @@ def decide_precision(
     Made once per artifact: stored in `notes` before the first view is written
     and read back by a resumed run, which does not check again (another CPU's
     floats could choose otherwise and mix bf16 and fp32 rows in one artifact).
-    `sample()` gives the (levels, image) the check crops. None when the encoder
-    asks for no check (precision fp32 or bf16 given, or not OpenCLIP)."""
+    `sample()` gives the (levels, image) the check crops; it is called only
+    where bf16 may be faster (`precision_without_sample`, where the encoder has
+    it: no bf16 instructions on this CPU is fp32 without segmenting anything).
+    None when the encoder asks for no check (precision fp32 or bf16 given, or not
+    OpenCLIP)."""
     if getattr(encoder, "precision_wanted", None) != "auto":
         return None
     report = None if notes is None else notes.get("precision")
@@ -382,8 +398,14 @@ def decide_precision(
             report["precision"],
         )
     else:
-        levels, image = sample()
-        report = check_precision(encoder, levels, image, crop_size)
+        quick = getattr(encoder, "precision_without_sample", None)
+        report = quick() if quick is not None else None
+        if report is not None:
+            log.info("precision: %s (%s: %s; nothing sampled)", report["precision"],
+                     report["reason"], _probe_words(report["bf16_probe"]))  # fmt: skip
+        else:
+            levels, image = sample()
+            report = check_precision(encoder, levels, image, crop_size)
         if notes is not None:
             notes.put("precision", report)
     encoder.precision = report["precision"]
