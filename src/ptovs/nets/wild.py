@@ -33,13 +33,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import torch
 from torch import Tensor, nn
 from torch.nn import functional as F  # noqa: N812
 
 from ptovs.raster import SH_C0
+from ptovs.scene.images import resize_photo
 
 APPEARANCES = ("delta-sh", "affine", "shading")
 GAUSS_DIM = 16  # per-Gaussian embedding of the affine and shading appearances
@@ -456,7 +456,7 @@ class WildNets(nn.Module):
         """RGB [H, W, 3] in [0, 1] -> (f_α input [3, S, S], f_β input [3, s, s])."""
         out = []
         for res in (self.preset.alpha_res, self.preset.beta_res):
-            small = cv2.resize(image, (res, res), interpolation=cv2.INTER_AREA)
+            small = resize_photo(image, (res, res))  # in [0, 1] at any factor
             out.append(torch.from_numpy(np.ascontiguousarray(small)).permute(2, 0, 1))
         return out[0].float(), out[1].float()
 

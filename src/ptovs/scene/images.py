@@ -123,9 +123,10 @@ def load_image(view: Any) -> np.ndarray:  # view: a ptovs.scene.View
         view: the view (its `image_path`, full and working sizes).
 
     Returns:
-        RGB float32 [H, W, 3] in [0, 1] at (view.height, view.width). Grayscale is
-        replicated to 3 channels, alpha dropped (reported once a file when
-        it is not opaque: `report_alpha`), 16-bit scaled by 1/65535.
+        RGB float32 [H, W, 3] in [0, 1] at (view.height, view.width), resized by
+        `resize_photo`. Grayscale is replicated to 3 channels, alpha dropped
+        (reported once a file when it is not opaque: `report_alpha`), 16-bit scaled
+        by 1/65535; float samples clipped, NaN and -inf read as 0, +inf as 1.
     """
     path = view.image_path
     if not path.is_file():
@@ -177,11 +178,33 @@ def load_image(view: Any) -> np.ndarray:  # view: a ptovs.scene.View
             "image_undistorter wrote next to the model)"
         )
     out = img.astype(np.float32) * np.float32(scale)
-    if scale == 1.0:
-        out = np.clip(out, 0.0, 1.0)
+    if scale == 1.0:  # a float TIFF or EXR may hold NaN, inf or values past 1
+        out = np.clip(np.nan_to_num(out, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
     if (view.width, view.height) != (w, h):
-        out = cv2.resize(out, (view.width, view.height), interpolation=cv2.INTER_AREA)
+        out = resize_photo(out, (view.width, view.height))
     return np.ascontiguousarray(out)  # [H, W, 3]
+
+
+def resize_photo(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Resize a photo by area averaging, its samples kept in [0, 1].
+
+    cv2's INTER_AREA at a factor that is not an integer weighs each source pixel by
+    float32 fractions whose sum is not exactly 1, so a saturated region comes back
+    at 1 + 1.2e-7 (a white 3072x2048 photo at 614x410: 189,420 of its samples); the
+    clip restores the range every consumer of a photo relies on (PhotoStack refuses
+    anything else).
+
+    Args:
+        img: [H, W, C] float photo in [0, 1].
+        size: target (width, height), cv2 order.
+
+    Returns:
+        [height, width, C] float32 in [0, 1].
+    """
+    src = np.asarray(img, np.float32)
+    out = cv2.resize(src, (int(size[0]), int(size[1])), interpolation=cv2.INTER_AREA)
+    out = out.reshape(out.shape[0], out.shape[1], *src.shape[2:])  # cv2 drops C = 1
+    return np.clip(out, 0.0, 1.0, out=out)
 
 
 class PhotoStack(Sequence[np.ndarray]):
