@@ -57,6 +57,7 @@ from ptovs.registry import scene_input, upstream
 from ptovs.scene import check_size
 from ptovs.segment import NO_SEGMENT, Level, Segmenter, check_levels, get_segmenter
 from ptovs.stage import stage_command
+from ptovs.visual import to_uint8
 
 log = logging.getLogger(__name__)
 
@@ -562,7 +563,7 @@ def run(
 
         def first_view() -> tuple[list, np.ndarray]:
             v0 = views[0]  # the same sample whatever was skipped
-            img0 = (scene.load_image(v0) * 255.0 + 0.5).astype(np.uint8)
+            img0 = to_uint8(scene.load_image(v0))
             cut0 = _cut_levels(segmenter, v0.stem, "orig", img0, config.min_crop_px)
             return cut0, img0
 
@@ -591,7 +592,7 @@ def run(
 
         def image(app: str, v=v, renders=renders) -> np.ndarray:
             if app == "orig":
-                return (scene.load_image(v) * 255.0 + 0.5).astype(np.uint8)
+                return to_uint8(scene.load_image(v))  # clipped: no wrap
             return renders[slots.index(app)]
 
         shared = None  # the view's segments, cut once
