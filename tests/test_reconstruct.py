@@ -470,6 +470,26 @@ def test_degenerate_photos_train_without_nan(scene_copy, caplog):
             assert np.isfinite(arr).all(), name
 
 
+def test_saturated_photos_at_a_non_integer_scale_train(scene_copy):
+    """Every photo 2.5 times over-exposed and clipped (a blown-out sky: up to half
+    a photo's pixels at 255), trained at r = 3: the tiny scene's sides are not all
+    multiples of 3 (93, 92, 100 px), and resizing such a side used to leave
+    1 + 1.2e-7 over the white pixels, which the photo store refused."""
+    from ptovs.stages.reconstruct import Config, Inputs, run
+
+    images = scene_copy / "dense" / "images"
+    for path in sorted(images.iterdir()):
+        img = cv2.imread(str(path)).astype(np.float32) * 2.5
+        cv2.imwrite(str(path), np.clip(img, 0, 255).astype(np.uint8))
+    scene = load_scene(scene_copy, downscale=3)
+    assert any(3 * v.width != v.full_width for v in scene.views)
+    cfg = Config(iterations=20, mask_warmup=10, densify_from=10, densify_every=10)
+    out = list(run(Inputs(scene), cfg))
+    for name, arr in out[-1][1].items():
+        if arr.dtype.kind == "f":
+            assert np.isfinite(arr).all(), name
+
+
 def test_view_that_sees_no_point_is_harmless():
     from ptovs.field.train import train
     from ptovs.stages.reconstruct import Config
