@@ -396,8 +396,20 @@ def test_bf16_is_kept_only_where_it_agrees_with_fp32_and_is_faster(monkeypatch):
     enc = OpenClipEncoder(register_tiny(), random_weights=True, precision="auto")
     assert enc.precision == "fp32"  # auto starts safe
     _bf16_allowed(monkeypatch, enc)
+    # an agreeing bf16 tower: fp32's features rounded to bf16. The whole random
+    # tiny tower in bf16 sits on the bars (centred cosine 0.996-0.998, a near-tie
+    # that AMX's rounding flips and AVX-512's does not), so it cannot stand for "agrees"
+    real = enc._forward
+
+    def rounded(x, precision):
+        f = real(x, "fp32")
+        return f.to(torch.bfloat16).float() if precision == "bf16" else f
+
+    monkeypatch.setattr(enc, "_forward", rounded)
     clean = enc.check_precision(crops)
+    monkeypatch.setattr(enc, "_forward", real)
     assert clean["precision"] == "bf16" and enc.precision == "bf16", clean
+    assert 0 < clean["worst_feature_distance"] < 0.01  # bf16 did round them
     assert clean["worst_centred_cosine"] >= MIN_CENTRED_COSINE
     assert clean["worst_relevancy_change"] <= MAX_RELEVANCY_CHANGE
     json.dumps(clean)  # stored with the features
