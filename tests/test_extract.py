@@ -306,12 +306,12 @@ def test_langsplat_round_trip(chain, tmp_path):
                 got.table, want.table
             )
             assert np.array_equal(got.counts, want.counts)
-        # the stage imports the folder: same tables as the computed ones
-        _cli(
-            work, "extract-features", "--data", str(data), "--set", f"import_dir={out}"
-        )
+        # the stage imports the folder: same tables as the computed ones (in a copy
+        # of the work dir: the scene records the --set for its later commands)
+        own = copy_work(work, tmp_path / "import-work")
+        _cli(own, "extract-features", "--data", str(data), "--set", f"import_dir={out}")
         arts = sorted(
-            (work / "tiny_s0" / "extract-features").glob("*.h5"),
+            (own / "tiny_s0" / "extract-features").glob("*.h5"),
             key=lambda p: p.stat().st_mtime,
         )
         with Artifact(arts[-1]) as imp:

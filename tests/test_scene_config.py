@@ -238,3 +238,21 @@ def test_a_damaged_record_names_the_fix(env):
         r.output
     )
     assert "give --config FILE" in r.output and "Traceback" not in r.output
+
+
+def test_a_command_that_fails_leaves_the_recorded_settings_as_they_were(env):
+    """A --set that makes a stage fail is not adopted by the next command."""
+    invoke, data = env["invoke"], env["data"]
+    a = env["toml"]("a.toml", 2.0)
+    invoke("--config", str(a), "toy-views", "--data", data)
+    before = env["record"].read_text()
+    image = sorted((Path(data) / "dense" / "images").iterdir())[0]
+    good = image.read_bytes()
+    image.write_bytes(b"not an image")  # passes the checks, fails in the stage
+    r = invoke("toy-views", "--data", data, "--set", "gain=9", ok=False)
+    assert r.exit_code == 1 and "could not decode" in r.output, r.output
+    assert env["record"].read_text() == before
+    image.write_bytes(good)
+    r = invoke("status", "--data", data)
+    assert "gain=9" not in r.output
+    assert _state(r.output, "toy-views") == "done"  # a.toml's chain, as recorded

@@ -117,13 +117,31 @@ class LazyGroup(click.Group):
 
     def invoke(self, ctx: click.Context) -> object:
         """Errors a user can cause become one-line messages (exit 1); `-vv` shows
-        the traceback as well."""
+        the traceback as well. A command that fails leaves the scene's recorded
+        settings as they were (`ptovs.keys.undo_checked_writes`); one interrupted
+        keeps them, so its rerun resumes with them."""
+        from ptovs.keys import forget_checked_writes, undo_checked_writes
+
         try:
-            return super().invoke(ctx)
+            out = super().invoke(ctx)
+        except (KeyboardInterrupt, click.exceptions.Abort):
+            forget_checked_writes()
+            raise
         except (InputError, MissingInputError, OSError, MemoryError) as exc:
+            undo_checked_writes()
             if _TRACEBACKS:
                 log.debug("traceback", exc_info=True)
             raise click.ClickException(_user_message(exc)) from None
+        except click.exceptions.Exit as exc:
+            if exc.exit_code:
+                undo_checked_writes()
+            forget_checked_writes()
+            raise
+        except BaseException:
+            undo_checked_writes()
+            raise
+        forget_checked_writes()
+        return out
 
 
 def _user_message(exc: BaseException) -> str:
@@ -235,10 +253,11 @@ def main(
         import torch
 
         torch.set_num_threads(threads)
-    from ptovs.keys import flush_fingerprints
+    from ptovs.keys import flush_fingerprints, forget_checked_writes
     from ptovs.scene_config import GivenConfig
 
     flush_fingerprints(write=False)  # nothing left pending by an earlier call
+    forget_checked_writes()
     try:
         given = GivenConfig.read(config_files, sets)
         config = given.config()

@@ -54,6 +54,7 @@ READ_ONLY: contextvars.ContextVar[bool] = contextvars.ContextVar(
 
 _PENDING: dict[Path, dict] = {}  # fingerprint caches computed while read-only
 _DEFERRED: dict[Path, str] = {}  # small files written when the checks pass
+_UNDO: dict[Path, str | None] = {}  # what those files held before (None: absent)
 
 
 @contextlib.contextmanager
@@ -90,9 +91,41 @@ def flush_fingerprints(write: bool = True) -> None:
         for cache, memo in pending.items():
             _write_fingerprints(cache, memo)
         for path, text in deferred.items():
-            path.parent.mkdir(parents=True, exist_ok=True)
-            with atomic_file(path, keep_suffix=False) as tmp:
-                tmp.write_text(text)
+            if path not in _UNDO:
+                try:
+                    _UNDO[path] = path.read_text()
+                except OSError:  # absent (or unreadable: nothing to restore)
+                    _UNDO[path] = None
+            _write_text(path, text)
+
+
+def _write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_file(path, keep_suffix=False) as tmp:
+        tmp.write_text(text)
+
+
+def forget_checked_writes() -> None:
+    """Keep what `write_when_checked` wrote (a command ended, or a new one starts)."""
+    _UNDO.clear()
+
+
+def undo_checked_writes() -> None:
+    """Put back what the files of `write_when_checked` held before this command
+    wrote them: a command that failed (not one interrupted, which resumes with its
+    settings) leaves the scene's recorded settings as they were, so a setting that
+    made it fail is not adopted by the next command."""
+    undo = dict(_UNDO)
+    _UNDO.clear()
+    _DEFERRED.clear()
+    for path, text in undo.items():
+        try:
+            if text is None:
+                path.unlink(missing_ok=True)
+            else:
+                _write_text(path, text)
+        except OSError:  # best effort: the command's own error is the one to show
+            pass
 
 
 def file_sha256(path: Path) -> str:
