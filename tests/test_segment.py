@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import inspect
+import sys
+from collections import Counter
+
 import numpy as np
 import pytest
 import torch
@@ -335,6 +339,326 @@ def test_sam_generator_equals_segment_anythings(monkeypatch, order, one_thread):
         assert len(lv.masks) == len(visible)
         assert all(np.array_equal(a, b) for a, b in zip(lv.masks, visible, strict=True))
     assert total > 20 and len(ours["default"]["masks"]) > len(ours["s"]["masks"])
+
+
+# ------------------------------------ production settings against upstream --
+
+UPSTREAM_OPTIONS = (
+    "pred_iou_thresh",
+    "stability_score_thresh",
+    "stability_score_offset",
+    "box_nms_thresh",
+    "crop_n_layers",
+    "crop_overlap_ratio",
+    "crop_n_points_downscale_factor",
+    "crop_nms_thresh",
+    "min_mask_region_area",
+)
+"""`MaskGenerator`'s options that upstream's automatic mask generators share."""
+
+FILTERS = (
+    "predicted IoU",
+    "stability",
+    "crop edge",
+    "box NMS",
+    "crop NMS",
+    "clean-up NMS",
+)
+"""The generator's steps that drop masks, in the order they run."""
+
+NMS_SITES = {
+    "box NMS": ("_process_crop", "_crop_masks"),
+    "crop NMS": ("_generate_masks", "candidates"),
+    "clean-up NMS": ("postprocess_small_regions", "_postprocess_small_regions"),
+}
+"""Each box NMS: the upstream generator's method that runs it, and ours."""
+
+
+def production_options() -> dict:
+    """The generator settings extract-features runs SAM and SAM 2.1 with (all
+    but the prompt grid): `MaskGenerator`'s defaults, and the config's
+    `sam_crop_n_layers`."""
+    from ptovs.segment.generator import MaskGenerator
+    from ptovs.stages.extract_features import Config
+
+    params = inspect.signature(MaskGenerator.__init__).parameters
+    opts = {name: params[name].default for name in UPSTREAM_OPTIONS}
+    opts["crop_n_layers"] = Config().sam_crop_n_layers
+    return opts
+
+
+def shaped_outputs(
+    predict, to_pixels, n: int, iou_thresh: float, stability_thresh: float
+):
+    """Upstream's batched predict (SAM's `predict_torch`, sam2's `_predict`)
+    answering so that, at production settings, every one of `FILTERS` keeps some
+    masks and drops others (random weights alone give predicted IoUs and
+    stabilities that drop them all).
+
+    For the prompt in cell (i, j) of the crop's n x n grid, output k, added to
+    the model's logits (`to_pixels` as for `add_disks`):
+    - a cone (1/4 logit a pixel) of radius 6 or 24 px around the prompt (outputs
+      0 and 1), or of 32 px around the centre of the prompt's 2 x 2 block of
+      cells (output 2, the whole: four prompts give one mask, box NMS keeps one);
+      a mask of the whole image and one of a corner crop then coincide (crop
+      NMS), and many reach an inner crop edge (the crop-edge filter);
+    - ripples of +-0.5 logit on the crop's top 40 rows, which leave holes and
+      islands there for the clean-up: a mask found in two crops can come out
+      changed from one and unchanged from the other, and the clean-up's NMS,
+      which prefers unchanged masks, then keeps another than crop NMS, which
+      prefers the smaller crop;
+    - on output 2 of cells with i + j odd, a 5 x 5 px island at the block's
+      centre mirrored through the crop's: box NMS keeps that mask beside the
+      block's plain one, and once the clean-up removes the island, its NMS drops
+      the duplicate;
+    - a predicted IoU of `iou_thresh` - 0.1, `iou_thresh` itself (dropped: the
+      filter keeps IoU > threshold), + 0.1 or + 0.2, by (i + j + k) mod 4 (box
+      NMS ranks by it);
+    - logits x 1 where (i + 2j + k) mod 4 is 1, else x 40: the stability offset
+      (1 logit) is then 4 px or 0.1 px of a cone, a stability of about
+      ((r - 4) / (r + 4))^2, below 0.85, or about 1; but output 0 where
+      (i + 2j) mod 4 is 1 is a 10 x 10 px square at the prompt, its first
+      100 x `stability_thresh` pixels (row by row) at 2 logits and the rest at 0,
+      in -5: a stability of exactly the threshold (kept: the filter keeps
+      stability >= threshold).
+    Patched into ours and upstream's alike: it tests the generator, not SAM.
+    """
+
+    def wrapped(points, labels, *args, **kwargs):
+        logits, iou, low = predict(points, labels, *args, **kwargs)
+        h, w = logits.shape[-2:]
+        size = torch.tensor([w, h])
+        xy = to_pixels(points[:, 0, :].float())  # [N, 2] crop pixels
+        cell = (xy / size * n).floor()
+        block = (cell // 2 * 2 + 1) / n * size  # centre of the 2 x 2 block
+        i, j = cell.long().unbind(1)
+        centres = torch.stack([xy, xy, block], 1)  # [N, 3, 2]
+        yy, xx = torch.meshgrid(
+            torch.arange(h) + 0.5, torch.arange(w) + 0.5, indexing="ij"
+        )
+        d = torch.hypot(
+            xx - centres[..., 0, None, None], yy - centres[..., 1, None, None]
+        )
+        cones = (torch.tensor([6.0, 24.0, 32.0])[:, None, None] - d) * 0.25
+        ripple = 0.5 * torch.sin(1.3 * xx) * torch.sin(1.7 * yy) * (yy < 40)
+        far = size - block  # [N, 2]
+        island = ((xx - far[:, 0, None, None]).abs() < 2.5) & (
+            (yy - far[:, 1, None, None]).abs() < 2.5
+        )
+        island &= ((i + j) % 2 == 1)[:, None, None]
+        cones[:, 2] = torch.where(island, 2.0, cones[:, 2])
+        k = torch.arange(3)
+        gain = torch.where(((i + 2 * j)[:, None] + k) % 4 == 1, 1.0, 40.0)
+        logits = (logits + cones.to(logits.dtype) + ripple) * gain[..., None, None]
+        rows = torch.arange(h)[:, None] - xy[:, 1, None, None].floor() + 5
+        cols = torch.arange(w) - xy[:, 0, None, None].floor() + 5
+        inside = (rows >= 0) & (rows < 10) & (cols >= 0) & (cols < 10)
+        core = rows * 10 + cols < round(100 * stability_thresh)
+        square = torch.where(inside, torch.where(core, 2.0, 0.0), -5.0)
+        exact = ((i + 2 * j) % 4 == 1)[:, None, None]
+        logits[:, 0] = torch.where(exact, square.to(logits.dtype), logits[:, 0])
+        ious = [iou_thresh - 0.1, iou_thresh, iou_thresh + 0.1, iou_thresh + 0.2]
+        iou = torch.tensor(ious, dtype=iou.dtype)[((i + j)[:, None] + k) % 4]
+        return logits, iou, low
+
+    return wrapped
+
+
+def count_filters(monkeypatch, module):
+    """Count the masks that enter and that pass each of `FILTERS` in upstream's
+    generator `module` (segment_anything's or sam2's automatic_mask_generator,
+    its NMS `reference_batched_nms`), and the masks its clean-up changes.
+
+    Returns:
+        the counter ({(filter, "in" or "kept"): n, "changed": n}) and a wrapper
+        for upstream's predict that counts the masks entering the first filter.
+    """
+    counts: Counter = Counter()
+    sites = {theirs: name for name, (theirs, _) in NMS_SITES.items()}
+    stability, near, regions = (
+        module.calculate_stability_score,
+        module.is_box_near_crop_edge,
+        module.remove_small_regions,
+    )
+
+    def calculate_stability_score(masks, *args):
+        counts["predicted IoU", "kept"] += len(masks)
+        counts["stability", "in"] += len(masks)
+        return stability(masks, *args)
+
+    def is_box_near_crop_edge(boxes, *args):
+        out = near(boxes, *args)
+        counts["stability", "kept"] += len(boxes)
+        counts["crop edge", "in"] += len(boxes)
+        counts["crop edge", "kept"] += int((~out).sum())
+        return out
+
+    def batched_nms(boxes, *args, **kwargs):
+        keep = reference_batched_nms(boxes, *args, **kwargs)
+        name = sites[sys._getframe(1).f_code.co_name]
+        counts[name, "in"] += len(boxes)
+        counts[name, "kept"] += len(keep)
+        return keep
+
+    def remove_small_regions(mask, *args, **kwargs):
+        out, changed = regions(mask, *args, **kwargs)
+        counts["changed"] += changed
+        return out, changed
+
+    for fn in (
+        calculate_stability_score,
+        is_box_near_crop_edge,
+        batched_nms,
+        remove_small_regions,
+    ):
+        monkeypatch.setattr(module, fn.__name__, fn)
+
+    def counted(predict):
+        def wrapped(*args, **kwargs):
+            out = predict(*args, **kwargs)
+            counts["predicted IoU", "in"] += out[1].numel()
+            return out
+
+        return wrapped
+
+    return counts, counted
+
+
+def assert_every_filter_worked(counts: Counter) -> None:
+    """Each of `FILTERS` kept some masks and dropped others; the clean-up changed
+    some masks."""
+    for name in FILTERS:
+        assert 0 < counts[name, "kept"] < counts[name, "in"], (name, dict(counts))
+    assert counts["changed"] > 0, dict(counts)
+
+
+def same_masks(ours: dict, theirs: dict) -> bool:
+    """Whether our candidates ({level: ...}) are upstream's annotations
+    ({level: [ann, ...]}), as `assert_same_masks` decides."""
+    try:
+        for level, anns in theirs.items():
+            assert_same_masks(ours[level], anns)
+    except AssertionError:
+        return False
+    return True
+
+
+def assert_controls_fail(monkeypatch, seg, img: np.ndarray, theirs: dict) -> None:
+    """Negative controls: one step of ours changed at a time, our candidates of
+    `img` are no longer upstream's `theirs` (the comparison can fail).
+
+    Switched off: the predicted-IoU, stability and crop-edge filters, crop NMS,
+    the clean-up's NMS, the crop layer, the clean-up. Moved: the IoU threshold
+    down by 1e-6 (masks predicted at the threshold pass), the stability
+    threshold up by 1e-6 (masks at the threshold go) and box NMS's down by 0.3.
+    Box NMS switched off changes nothing here: crop NMS then removes the same
+    masks, at the same threshold and in the order box NMS leaves them (sorted by
+    predicted IoU either way); only a chain across crops would tell (a corner
+    crop's mask removing one of the whole image's that would have removed
+    another), and these outputs form none.
+    """
+    from ptovs.segment import generator
+
+    def attrs(**changes):
+        return lambda m: [m.setattr(seg, k, v) for k, v in changes.items()]
+
+    def nms_off(ours_site):
+        def no_nms_there(boxes, scores, iou_thr):
+            site = sys._getframe(1).f_code.co_name
+            return box_nms(boxes, scores, 1.0 if site == ours_site else iou_thr)
+
+        return lambda m: m.setattr(generator, "box_nms", no_nms_there)
+
+    def never_near(boxes, *args):
+        return torch.zeros(len(boxes), dtype=torch.bool)
+
+    controls = {
+        "predicted IoU off": attrs(pred_iou_thresh=0.0),
+        "predicted IoU threshold - 1e-6": attrs(
+            pred_iou_thresh=seg.pred_iou_thresh - 1e-6
+        ),
+        "stability off": attrs(stability_score_thresh=0.0),
+        "stability threshold + 1e-6": attrs(
+            stability_score_thresh=seg.stability_score_thresh + 1e-6
+        ),
+        "crop edge off": lambda m: m.setattr(
+            seg.amg, "is_box_near_crop_edge", never_near
+        ),
+        "box NMS threshold - 0.3": attrs(box_nms_thresh=seg.box_nms_thresh - 0.3),
+        "crop NMS off": nms_off(NMS_SITES["crop NMS"][1]),
+        "clean-up NMS off": nms_off(NMS_SITES["clean-up NMS"][1]),
+        "no crop layer": attrs(crop_n_layers=0),
+        "no clean-up": attrs(min_mask_region_area=0),
+    }
+    still_equal = []
+    for name, apply in controls.items():
+        with monkeypatch.context() as m:
+            apply(m)
+            if same_masks(seg.candidates(img), theirs):
+                still_equal.append(name)
+    assert not still_equal, f"ours still equals upstream's with {still_equal}"
+
+
+@pytest.mark.skipif(not HAS_SAM, reason=NO_SAM)
+def test_sam_generator_equals_segment_anythings_at_production_settings(
+    monkeypatch, one_thread
+):
+    """At the settings extract-features runs (`production_options`, read from the
+    code: predicted IoU > 0.7, stability >= 0.85, one crop layer, box and crop NMS
+    0.7, holes and islands under 100 px), levels by index as for SAM: per level,
+    our candidates are `SamAutomaticMaskGenerator`'s (NMS: torchvision's
+    `batched_nms` as `reference_batched_nms`), mask for mask and in order, and the
+    painted levels LangSplat's. The predictor's outputs are shaped
+    (`shaped_outputs`) so that each filter keeps some masks and drops others,
+    counted in upstream's run; and each negative control (`assert_controls_fail`:
+    a step of ours off or its threshold moved) breaks the equality."""
+    from ptovs.compat import import_backend
+    from ptovs.segment.sam import SamSegmenter, tiny_sam
+
+    amg_mod = import_backend("segment_anything.automatic_mask_generator")
+    counts, counted = count_filters(monkeypatch, amg_mod)
+    opts = production_options()
+    grid = dict(points_per_side=4, points_per_batch=6)
+    model = tiny_sam(seed=1)
+
+    def shaped(predictor):
+        def to_pixels(p):  # SAM's input frame (longest side 256) -> crop pixels
+            (h, w), (ih, iw) = predictor.original_size, predictor.input_size
+            return p * torch.tensor([w / iw, h / ih])
+
+        predict = predictor.predict_torch
+        thresholds = opts["pred_iou_thresh"], opts["stability_score_thresh"]
+        return shaped_outputs(predict, to_pixels, 4, *thresholds)
+
+    levels = ("default", "s", "m", "l")
+    # as extract-features builds it: every other option at its default
+    seg = SamSegmenter(
+        model=model, levels=levels, crop_n_layers=opts["crop_n_layers"], **grid
+    )
+    assert seg.level_order == "index"
+    monkeypatch.setattr(seg.predictor, "predict_torch", shaped(seg.predictor))
+    img = _blocks(96, 128)
+    ours = seg.candidates(img)
+    painted = seg.segment(img)
+    theirs = {}
+    for level, lv in zip(levels, painted, strict=True):
+        gen = amg_mod.SamAutomaticMaskGenerator(model, **grid, **opts)
+        outputs = (0, 1, 2) if level == "default" else ("sml".index(level),)
+        predict = one_output(shaped(gen.predictor), outputs, False, 0.0)
+        monkeypatch.setattr(gen.predictor, "predict_torch", counted(predict))
+        anns = theirs[level] = gen.generate(img)
+        assert_same_masks(ours[level], anns)
+        labels, visible = langsplat_paint(
+            [a["segmentation"] for a in anns],
+            [a["predicted_iou"] for a in anns],
+            [a["stability_score"] for a in anns],
+            img.shape[:2],
+        )
+        assert np.array_equal(lv.labels, labels)
+        assert len(lv.masks) == len(visible)
+    assert all(theirs.values())
+    assert_every_filter_worked(counts)
+    assert_controls_fail(monkeypatch, seg, img, theirs)
 
 
 @pytest.mark.skipif(not HAS_SAM, reason=NO_SAM)
