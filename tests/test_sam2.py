@@ -4,9 +4,10 @@ One randomly initialised (seeded) hiera-tiny, saved as sam2 saves its checkpoint
 ({"model": state_dict}), serves every test: the segmenter's levels are valid, our
 point adapter answers exactly as sam2's own `SAM2ImagePredictor.predict` on the
 same weights and image, our generator's masks are sam2's own
-`SAM2AutomaticMaskGenerator`'s mask for mask, and preflight refuses a missing file,
-a SAM 2.0 checkpoint and another model's checkpoint in one line, naming the fix,
-before any stage runs.
+`SAM2AutomaticMaskGenerator`'s mask for mask (filters off, and at the settings
+extract-features runs), and preflight refuses a missing file, a SAM 2.0
+checkpoint and another model's checkpoint in one line, naming the fix, before
+any stage runs.
 """
 
 from __future__ import annotations
@@ -25,6 +26,14 @@ from conftest import (
     langsplat_paint,
     one_output,
     reference_batched_nms,
+)
+from test_segment import (
+    UPSTREAM_OPTIONS,
+    assert_controls_fail,
+    assert_every_filter_worked,
+    count_filters,
+    production_options,
+    shaped_outputs,
 )
 
 pytest.importorskip("sam2")
@@ -140,10 +149,10 @@ def test_generator_equals_sam2s_automatic_mask_generator(
     small-region clean-up from sam2's own `postprocess_small_regions` (LangSplat's
     recipe, what ptovs runs); the painted levels are LangSplat's of those masks.
     Thresholds 0 (upstream: filters off) and prompt-centred cones on the logits
-    (conftest.add_disks), so random weights give masks of every size. One crop
-    layer would cost four more encoder passes; crops are covered on SAM 1, whose
-    generator loop is this one (tests/test_segment.py). Random weights with
-    LangSplat's thresholds find nothing: every level has n == 0."""
+    (conftest.add_disks), so random weights give masks of every size. No crop
+    layer here (four more encoder passes); the test at production settings below
+    has one. Random weights with LangSplat's thresholds find nothing: every level
+    has n == 0."""
     from ptovs.compat import import_backend
 
     amg_gen = import_backend("sam2.automatic_mask_generator")
@@ -212,6 +221,123 @@ def test_generator_equals_sam2s_automatic_mask_generator(
     monkeypatch.setattr(pred, "_predict", predict)
     seg.pred_iou_thresh, seg.stability_score_thresh = 0.7, 0.85  # LangSplat's
     assert [lv.n for lv in seg.segment(img)] == [0, 0, 0, 0]
+
+
+def _one_embedding(predictor) -> None:
+    """Every image set gets the first one's embedding: one encoder pass serves
+    ours and upstream's generator and every crop (the masks come from the shaped
+    outputs; what is compared is the generator around the predictor)."""
+    set_image = predictor.set_image
+    first: dict = {}
+
+    def shared(image):
+        if not first:
+            set_image(image)
+            first["features"] = predictor._features
+        predictor._features = first["features"]
+        predictor._orig_hw = [image.shape[:2]]
+        predictor._is_image_set, predictor._is_batch = True, False
+
+    predictor.set_image = shared
+
+
+def _memoised(predict, predictor):
+    """`predict` (the predictor's `_predict`, shaped) run once for each prompt
+    batch and crop size (one embedding for every crop: equal inputs, equal
+    outputs)."""
+    seen: dict = {}
+
+    def cached(points, labels, *args, **kwargs):
+        key = (tuple(predictor._orig_hw[-1]), points.cpu().numpy().tobytes())
+        if key not in seen:
+            seen[key] = predict(points, labels, *args, **kwargs)
+        return tuple(t.clone() for t in seen[key])  # callers edit them in place
+
+    return cached
+
+
+def test_generator_equals_sam2s_at_production_settings(
+    tiny_ckpt: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """At the settings extract-features runs SAM 2.1 with (`production_options`,
+    read from the code: predicted IoU > 0.7, stability >= 0.85, one crop layer,
+    box and crop NMS 0.7, holes and islands under 100 px; the three outputs
+    sorted by area), built as extract-features builds it: per level, our
+    candidates are sam2's own `SAM2AutomaticMaskGenerator`'s followed by its
+    `postprocess_small_regions` (SAM-1's clean-up, which sam2's `generate` leaves
+    out; NMS: torchvision's `batched_nms` as `reference_batched_nms`), mask for
+    mask and in order, and the painted levels LangSplat's. The predictor's
+    outputs are shaped (`shaped_outputs`) so that each filter keeps some masks
+    and drops others, counted in upstream's run; each negative control (a step
+    of ours off or its threshold moved) breaks the equality. One encoder pass
+    serves every crop (`_one_embedding`), and each prompt batch is decoded once
+    per crop size (`_memoised`)."""
+    from sam2.utils.amg import rle_to_mask
+
+    from ptovs.compat import import_backend
+
+    amg_gen = import_backend("sam2.automatic_mask_generator")
+    counts, counted = count_filters(monkeypatch, amg_gen)
+    opts = production_options()
+    levels = ("default", "s", "m", "l")
+    config = Config(
+        segmenter="sam2",
+        sam_checkpoint=str(tiny_ckpt),
+        sam_points_per_side=4,
+        levels=levels,
+    )
+    seg = build_segmenter(config)
+    stored = [k for k in UPSTREAM_OPTIONS if hasattr(seg, k)]
+    assert {k: getattr(seg, k) for k in stored} == {k: opts[k] for k in stored}
+    assert seg.level_order == "area" and opts["crop_n_layers"] > 0
+    grid = dict(points_per_side=4, points_per_batch=8)
+    seg.points_per_batch = grid["points_per_batch"]
+    pred = seg.predictor
+    _one_embedding(pred)
+
+    def to_pixels(p):  # sam2's normalised input frame -> crop pixels
+        h, w = pred._orig_hw[-1]
+        return p / pred._transforms.resolution * torch.tensor([w, h])
+
+    thresholds = opts["pred_iou_thresh"], opts["stability_score_thresh"]
+    shaped = _memoised(shaped_outputs(pred._predict, to_pixels, 4, *thresholds), pred)
+    monkeypatch.setattr(pred, "_predict", shaped)
+    img = _image(96, 128)
+    ours = seg.candidates(img)
+    painted = seg.segment(img)
+    theirs = {}
+    for i, level in enumerate(levels):
+        gen = amg_gen.SAM2AutomaticMaskGenerator(seg.model, **grid, **opts)
+        gen.predictor = pred  # the same predictor: no hole filling
+        outputs = (0, 1, 2) if level == "default" else (i - 1,)
+        monkeypatch.setattr(
+            pred, "_predict", counted(one_output(shaped, outputs, True, 0.0))
+        )
+        data = gen._generate_masks(img)
+        data = gen.postprocess_small_regions(
+            data,
+            opts["min_mask_region_area"],
+            max(opts["box_nms_thresh"], opts["crop_nms_thresh"]),
+        )
+        anns = theirs[level] = [
+            dict(segmentation=rle_to_mask(r), predicted_iou=p, stability_score=q)
+            for r, p, q in zip(
+                data["rles"], data["iou_preds"], data["stability_score"], strict=True
+            )
+        ]
+        assert_same_masks(ours[level], anns)
+        labels, visible = langsplat_paint(
+            [a["segmentation"] for a in anns],
+            [a["predicted_iou"] for a in anns],
+            [a["stability_score"] for a in anns],
+            img.shape[:2],
+        )
+        assert np.array_equal(painted[i].labels, labels)
+        assert len(painted[i].masks) == len(visible)
+    assert all(theirs.values())
+    assert_every_filter_worked(counts)
+    monkeypatch.setattr(pred, "_predict", shaped)  # ours again
+    assert_controls_fail(monkeypatch, seg, img, theirs)
 
 
 def test_preflight_refuses_missing_and_other_models_checkpoints(
