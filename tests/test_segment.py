@@ -150,7 +150,9 @@ def test_reuse_freed_memory_keeps_freed_tensors_pages():
     # glibc's default unmaps each such tensor, unless this process's earlier
     # allocations already raised its thresholds (other tests ran here first)
     if outside > 3 * 10_000:
-        assert faults() > outside / 2  # on exit the default is back
+        # on exit the default is back: tensors fault again, more than inside's bound
+        # (how many of the three depends on glibc's trimming: 1 or 2 seen in a suite)
+        assert faults() >= 3 * 16384 / 10
 
 
 def test_paint_later_masks_win_and_ids_are_dense():
