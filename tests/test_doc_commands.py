@@ -97,7 +97,6 @@ def _named_checkpoints() -> dict[str, str]:
     """{checkpoint path: OpenCLIP model, or "" for a SAM checkpoint} over the
     configs and the docs' --set items."""
     from ptovs.scene_config import tomllib  # tomli on Python 3.10
-
     from ptovs.stages.extract_features import Config
 
     found: dict[str, str] = {}
