@@ -387,3 +387,25 @@ def test_sfm_tips_are_valid_settings_that_change_what_ran():
             assert getattr(new, key) != used, (item, tips)
         if pairing == "exhaustive":
             assert not any("pairing" in t for t in tips)
+
+
+def test_a_float_photo_with_nan_and_inf_is_staged_as_load_image_reads_it(tmp_path):
+    """A float TIFF's NaN and -inf stage as 0, +inf as 255 (not an undefined byte)."""
+    import warnings
+
+    import cv2
+
+    from ptovs.sfm import _stage_photos
+
+    img = np.full((8, 8, 3), 0.5, np.float32)
+    img[0, 0], img[1, 1], img[2, 2] = np.nan, np.inf, -np.inf
+    src = tmp_path / "in" / "a.tiff"
+    src.parent.mkdir()
+    assert cv2.imwrite(str(src), img)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy's "invalid value in cast"
+        names, skipped = _stage_photos([src], tmp_path / "out")
+    assert names == ["a.png"] and not skipped
+    out = cv2.imread(str(tmp_path / "out" / "a.png"))
+    assert out[0, 0].tolist() == [0, 0, 0] and out[2, 2].tolist() == [0, 0, 0]
+    assert out[1, 1].tolist() == [255, 255, 255] and out[4, 4].tolist() == [128] * 3

@@ -142,6 +142,7 @@ def _stage_photos(photos: list[Path], out: Path) -> tuple[list[str], dict[str, s
         if img.dtype == np.uint16:
             img = (img / 257.0).round().astype(np.uint8)
         elif img.dtype != np.uint8:
+            img = np.nan_to_num(img, nan=0.0, posinf=1.0, neginf=0.0)  # as load_image
             img = (np.clip(img, 0, 1) * 255).round().astype(np.uint8)
         if img.ndim == 2:
             img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
