@@ -409,3 +409,21 @@ def test_a_float_photo_with_nan_and_inf_is_staged_as_load_image_reads_it(tmp_pat
     out = cv2.imread(str(tmp_path / "out" / "a.png"))
     assert out[0, 0].tolist() == [0, 0, 0] and out[2, 2].tolist() == [0, 0, 0]
     assert out[1, 1].tolist() == [255, 255, 255] and out[4, 4].tolist() == [128] * 3
+
+
+def test_a_folder_of_links_to_photos_elsewhere_is_fingerprinted_as_a_copy(tmp_path):
+    """Photos linked into the folder from elsewhere (ln -s): keyed by their names
+    in the folder and their content, as a copy is (this stopped SfM with a
+    traceback when the links were resolved first)."""
+    from ptovs.keys import fingerprint_files
+
+    store, links, copy = tmp_path / "store", tmp_path / "links", tmp_path / "copy"
+    for d in (store, links / "images", copy / "images"):
+        d.mkdir(parents=True)
+    for name in ("a.jpg", "b.jpg"):
+        (store / name).write_bytes(name.encode() * 10)
+        (links / "images" / name).symlink_to(store / name)
+        (copy / "images" / name).write_bytes(name.encode() * 10)
+    key_links = fingerprint_files(sorted((links / "images").iterdir()), links, None)
+    key_copy = fingerprint_files(sorted((copy / "images").iterdir()), copy, None)
+    assert key_links == key_copy

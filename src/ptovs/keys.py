@@ -19,6 +19,7 @@ import contextlib
 import contextvars
 import hashlib
 import json
+import os
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -143,7 +144,9 @@ def fingerprint_files(files: Iterable[Path], root: Path, cache: Path | None) -> 
     File digests are cached by (size, mtime_ns), so a 3,000-image scene is hashed
     once; a file touched or replaced is hashed again.
     """
-    root = Path(root).resolve()
+    # paths as given (made absolute, links kept): a folder of links to photos
+    # elsewhere names its files by their place in the folder, not the targets'
+    root = Path(os.path.abspath(root))
     memo: dict[str, list[Any]] = {}
     if cache is not None and cache.is_file():
         try:
@@ -153,12 +156,15 @@ def fingerprint_files(files: Iterable[Path], root: Path, cache: Path | None) -> 
     if cache is not None and cache in _PENDING:  # hashed earlier in this process
         memo.update(_PENDING[cache])
     records, changed = [], False
-    for path in sorted(Path(p).resolve() for p in files):
+    for path in sorted(Path(os.path.abspath(p)) for p in files):
         st = path.stat()
         try:
             rel = path.relative_to(root).as_posix()
         except ValueError:  # e.g. labels beside the scene folder
-            rel = path.relative_to(root.parent).as_posix()
+            try:
+                rel = path.relative_to(root.parent).as_posix()
+            except ValueError:
+                rel = Path(os.path.relpath(path, root)).as_posix()
         hit = memo.get(str(path))
         if hit and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
             digest = hit[2]
