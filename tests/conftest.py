@@ -282,6 +282,16 @@ def langsplat_paint(masks: list, iou: list, stability: list, shape):
     return lut[raw], [kept[i] for i in visible]
 
 
+def langsplat_paint_anns(anns: list[dict], shape):
+    """`langsplat_paint` of upstream's annotations (`generate()` records)."""
+    return langsplat_paint(
+        [a["segmentation"] for a in anns],
+        [a["predicted_iou"] for a in anns],
+        [a["stability_score"] for a in anns],
+        shape,
+    )
+
+
 def assert_same_masks(ours: dict, anns: list[dict]) -> None:
     """Our candidates of one level (`MaskGenerator.candidates`) are upstream's
     annotations (`generate()` records), mask for mask, in the same order."""

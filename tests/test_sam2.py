@@ -23,7 +23,7 @@ from conftest import (
     add_disks,
     assert_points_match,
     assert_same_masks,
-    langsplat_paint,
+    langsplat_paint_anns,
     one_output,
     reference_batched_nms,
 )
@@ -205,12 +205,7 @@ def test_generator_equals_sam2s_automatic_mask_generator(
         ]
         assert_same_masks(ours[20][level], anns)
         total += len(anns)
-        labels, visible = langsplat_paint(
-            [a["segmentation"] for a in anns],
-            [a["predicted_iou"] for a in anns],
-            [a["stability_score"] for a in anns],
-            img.shape[:2],
-        )
+        labels, visible = langsplat_paint_anns(anns, img.shape[:2])
         assert np.array_equal(painted[i].labels, labels)
         assert len(painted[i].masks) == len(visible)
     assert total > 20
@@ -326,12 +321,7 @@ def test_generator_equals_sam2s_at_production_settings(
             )
         ]
         assert_same_masks(ours[level], anns)
-        labels, visible = langsplat_paint(
-            [a["segmentation"] for a in anns],
-            [a["predicted_iou"] for a in anns],
-            [a["stability_score"] for a in anns],
-            img.shape[:2],
-        )
+        labels, visible = langsplat_paint_anns(anns, img.shape[:2])
         assert np.array_equal(painted[i].labels, labels)
         assert len(painted[i].masks) == len(visible)
     assert all(theirs.values())

@@ -14,7 +14,7 @@ from conftest import (
     add_disks,
     assert_points_match,
     assert_same_masks,
-    langsplat_paint,
+    langsplat_paint_anns,
     one_output,
     reference_batched_nms,
 )
@@ -331,12 +331,7 @@ def test_sam_generator_equals_segment_anythings(monkeypatch, order, one_thread):
         anns = gen.generate(img)
         assert_same_masks(ours[level], anns)
         total += len(anns)
-        labels, visible = langsplat_paint(
-            [a["segmentation"] for a in anns],
-            [a["predicted_iou"] for a in anns],
-            [a["stability_score"] for a in anns],
-            img.shape[:2],
-        )
+        labels, visible = langsplat_paint_anns(anns, img.shape[:2])
         assert np.array_equal(lv.labels, labels)
         assert len(lv.masks) == len(visible)
         assert all(np.array_equal(a, b) for a, b in zip(lv.masks, visible, strict=True))
@@ -650,12 +645,7 @@ def test_sam_generator_equals_segment_anythings_at_production_settings(
         monkeypatch.setattr(gen.predictor, "predict_torch", counted(predict))
         anns = theirs[level] = gen.generate(img)
         assert_same_masks(ours[level], anns)
-        labels, visible = langsplat_paint(
-            [a["segmentation"] for a in anns],
-            [a["predicted_iou"] for a in anns],
-            [a["stability_score"] for a in anns],
-            img.shape[:2],
-        )
+        labels, visible = langsplat_paint_anns(anns, img.shape[:2])
         assert np.array_equal(lv.labels, labels)
         assert len(lv.masks) == len(visible)
     assert all(theirs.values())
