@@ -94,7 +94,7 @@ def write_config(work: Path, ckpt: Path, precision: str) -> Path:
     """configs/photos-cpu.toml with the random checkpoint and `precision`."""
     text = (ROOT / "configs" / "photos-cpu.toml").read_text()
     text = text.replace(
-        'clip_checkpoint = "ckpt/mobileclip2_s0_open_clip_model.safetensors"',
+        'clip_checkpoint = "ckpt/MobileCLIP2-S0-OpenCLIP/open_clip_model.safetensors"',
         f'clip_checkpoint = "{ckpt}"',
     ).replace('precision = "auto"', f'precision = "{precision}"')
     if f'"{ckpt}"' not in text or f'precision = "{precision}"' not in text:
@@ -186,14 +186,21 @@ def main() -> None:
     ap.add_argument("--project", type=int, default=763)
     ap.add_argument("--work", type=Path, default=ROOT / "work" / "real_chain")
     ap.add_argument("--fresh", action="store_true")
+    ap.add_argument("--until", default="", metavar="STAGE",
+                    help="stop each recipe after this stage")  # fmt: skip
+    ap.add_argument("--resume", action="store_true",
+                    help="keep stages measured at another commit (each record "
+                         "names its own commit)")  # fmt: skip
     ap.add_argument("--set", action="append", default=[], metavar="STAGE.KEY=VALUE")
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
     out_json = a.work / "real_chain.json"
     facts = machine_facts()
     old = {} if a.fresh or not out_json.is_file() else json.loads(out_json.read_text())
-    same = all(old.get("machine", {}).get(k) == facts.get(k)
-               for k in ("cpu_model", "cpu_count", "commit"))  # fmt: skip
+    kept = (
+        ("cpu_model", "cpu_count") if a.resume else ("cpu_model", "cpu_count", "commit")
+    )
+    same = all(old.get("machine", {}).get(k) == facts.get(k) for k in kept)
     results = {"machine": facts, "photos": a.photos, "precision": a.precision,
                "threads": a.threads, "model": MODEL, "set": a.set,
                "runs": old.get("runs", {}) if same else {}}  # fmt: skip
@@ -217,6 +224,7 @@ def main() -> None:
         cmd = command(a.work, config, st, scn, variant, a.threads, sets, phrase)
         rec = run_stage(cmd, env, logs, f"{label}-{st}")
         rec["date"] = time.strftime("%Y-%m-%d %H:%M")
+        rec["commit"] = facts.get("commit")
         run["stages"][st] = rec
         save_json(out_json, results)
         print(f"{label:<7} {st:<20} {rec['wall_s']:9.1f} s {rec['peak_rss_mb']:7.0f} MB"
@@ -228,7 +236,7 @@ def main() -> None:
     for name in a.recipes:
         variant, stages = RECIPES[name]
         for st in stages:
-            if not step(name, st, sc, variant, cfg):
+            if not step(name, st, sc, variant, cfg) or st == a.until:
                 break
     if a.sam2:
         results["sam2"] = sam2_seconds(sc, a.sam2, a.sam2_points, a.threads)

@@ -23,6 +23,19 @@ SYSTEM_COMMANDS = {"g++": "g++", "chromium": "chromium", "slurmctld": "slurm-wlm
 _TAG = re.compile(r"^\[(system|root): ([^\]]*)\]")
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _runtime_cache(tmp_path_factory: pytest.TempPathFactory):
+    """Exported encoders go to the session's own folder, never the user's cache
+    (commands run in subprocesses inherit it)."""
+    old = os.environ.get("PTOVS_RUNTIME_CACHE")
+    os.environ["PTOVS_RUNTIME_CACHE"] = str(tmp_path_factory.mktemp("runtimes"))
+    yield
+    if old is None:
+        os.environ.pop("PTOVS_RUNTIME_CACHE", None)
+    else:
+        os.environ["PTOVS_RUNTIME_CACHE"] = old
+
+
 def system_deps_required() -> bool:
     """True in CI (CI=true) or with PTOVS_REQUIRE_SYSTEM_DEPS=1: a missing system
     package fails its tests instead of skipping them."""

@@ -186,7 +186,8 @@ def test_renders_are_rgb_and_clamped(chain):
 
 
 def test_explicit_targets_and_bgr_option(chain, tmp_path):
-    work, data, _ = chain
+    # a copy: the scene records these --set items for its later commands
+    work, data = copy_work(chain[0], tmp_path / "work"), chain[1]
     scene = load_scene(data)
     ids = [v.stem for v in scene.train_views()[:3]]
     targets = "targets=[" + ", ".join(f'"{i}"' for i in ids) + "]"

@@ -221,6 +221,8 @@ UNIT = frozenset(  # fractions and probabilities: [0, 1]
 )
 BELOW_ONE = frozenset({"threshold"})  # [0, 1): at 1 nothing can pass
 SIGNED = {"import_iteration": -1}  # -1: the latest
+# 0 means "the stage's own choice" here (the encoder's input size, the runtime's batch)
+ZERO_IS_AUTO = frozenset({"extract-features.crop_size", "extract-features.batch_size"})
 
 
 def check_range(key: str, value: Any) -> None:
@@ -230,7 +232,7 @@ def check_range(key: str, value: Any) -> None:
         return
     name = key.rsplit(".", 1)[-1]
     lo, hi, why = 0, None, ">= 0"
-    if name in AT_LEAST_ONE:
+    if name in AT_LEAST_ONE and key not in ZERO_IS_AUTO:
         lo, why = 1, ">= 1"
     elif name in UNIT:
         hi, why = 1.0, "between 0 and 1"

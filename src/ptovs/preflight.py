@@ -276,6 +276,11 @@ def check_extract_config(config: Any, synthetic: bool = False) -> None:
             )
         return
     if _encoder(config, synthetic) == "openclip":
+        runtime = getattr(config, "runtime", "auto")
+        if runtime != "auto":  # asked by name: the backend says whether it can run
+            from ptovs.encoders.runtimes import require
+
+            require(runtime)
         check_openclip(
             config.clip_model,
             config.clip_checkpoint,

@@ -57,6 +57,8 @@ import numpy as np
 import torch
 
 from ptovs.compat import import_backend
+from ptovs.encoders import runtimes
+from ptovs.encoders.runtimes.tower import Tower
 
 log = logging.getLogger(__name__)
 
@@ -500,6 +502,17 @@ def centred_agreement(
     return out
 
 
+class _ImageTower(torch.nn.Module):
+    """The image side as one module (what a runtime exports): encode_image."""
+
+    def __init__(self, net: Any):
+        super().__init__()
+        self.net = net
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net.encode_image(x)
+
+
 class OpenClipEncoder:
     name = "openclip"
 
@@ -508,17 +521,18 @@ class OpenClipEncoder:
         model: str = "ViT-B-16",
         checkpoint: str | Path = "",
         device: str = "cpu",
-        batch_size: int = 64,
+        batch_size: int = 0,
         random_weights: bool = False,
         pretrained: str = "",
         tokenizer: str | Path = "",
         precision: str = "fp32",
+        runtime: str = "torch",
     ):
         """Args:
         model: OpenCLIP architecture name (`open_clip.list_models()`).
         checkpoint: local state dict of that model (required unless random_weights).
         device: "cpu" or "cuda".
-        batch_size: crops per forward pass.
+        batch_size: crops per forward pass (0: the runtime's own, `Tower.batch`).
         random_weights: build untrained (tests only).
         pretrained: the checkpoint's open_clip tag (e.g. "dfndr2b"), which
             decides the preprocessing and QuickGELU; needed only where a
@@ -527,6 +541,9 @@ class OpenClipEncoder:
             of a Hugging Face text tower's config and tokenizer (roberta, ...).
         precision: "fp32", "bf16" or "auto" (fp32 until `check_precision`
             clears bf16 on the scene's crops).
+        runtime: what runs the image tower in fp32: "torch", "onnxruntime",
+            "openvino" or "auto" (PyTorch until `check_runtime` decides on the
+            scene's crops; `ptovs.encoders.runtimes`).
         """
         if precision not in PRECISIONS:
             raise ValueError(f"precision {precision!r}: choose from {PRECISIONS}")
@@ -555,6 +572,45 @@ class OpenClipEncoder:
         self.precision_wanted = precision
         self.precision = "bf16" if precision == "bf16" else "fp32"
         self._fast: Any = None
+        self._checkpoint = "" if random_weights else str(checkpoint)
+        self.tower = Tower(_ImageTower(self.net), (3, self.size, self.size),
+                           self._runtime_key, self.device, runtime)  # fmt: skip
+        self.runtime_wanted = runtime
+
+    def _runtime_key(self) -> dict[str, Any]:
+        """What decides the exported tower's arithmetic: the weights (the
+        checkpoint file's digest; random weights: the tensors'), model, tag, size."""
+        weights = (runtimes.file_digest(self._checkpoint) if self._checkpoint
+                   else runtimes.tensors_digest(self.net.visual.state_dict()))  # fmt: skip
+        return {"model": self.model_name, "pretrained": self.pre.tag,
+                "quick_gelu": self.pre.quick_gelu, "size": self.size,
+                "weights": weights, "net": "openclip image tower"}  # fmt: skip
+
+    @property
+    def runtime(self) -> str:
+        """The runtime the fp32 image tower runs in now."""
+        return self.tower.name
+
+    def runtime_without_sample(self) -> dict | None:
+        """`Tower.without_sample`: the "auto" report where nothing can beat
+        PyTorch here (nothing encoded), else None."""
+        return self.tower.without_sample()
+
+    def check_runtime(self, crops: np.ndarray) -> dict:
+        """Decide runtime "auto" on `crops` (a sample of the scene's own): the
+        fastest runtime whose unit features are within 1e-4 of PyTorch's fp32
+        ones, timed against PyTorch in the precision kept. A runtime kept runs
+        fp32, so it also replaces a kept bf16 (`precision` becomes "fp32")."""
+        x = self.preprocess(np.asarray(crops))
+        precision = self.precision
+
+        def torch_run(a: np.ndarray) -> np.ndarray:
+            return self._forward(torch.from_numpy(a), precision, eager=True).numpy()
+
+        report = self.tower.check(x, torch_run)
+        if report["runtime"] != "torch" and self.precision != "fp32":
+            self.precision, self._fast = "fp32", None
+        return report
 
     # ------------------------------------------------------------ preprocessing
     def _upstream_transform(self) -> Any:
@@ -596,11 +652,17 @@ class OpenClipEncoder:
         return self._fast
 
     @torch.inference_mode()
-    def _forward(self, x: torch.Tensor, precision: str) -> torch.Tensor:
+    def _forward(
+        self, x: torch.Tensor, precision: str, eager: bool = False
+    ) -> torch.Tensor:
+        """Unit features of a preprocessed batch: bf16 in PyTorch, fp32 in the
+        tower's runtime (`eager`: in PyTorch whatever the runtime)."""
         if precision == "bf16":
             f = self._fast_model().encode_image(x.to(torch.bfloat16))
+        elif eager:
+            f = self.tower.torch_forward(x)
         else:
-            f = self.net.encode_image(x)
+            f = self.tower(x)
         return torch.nn.functional.normalize(f.float(), dim=-1)
 
     def _timed_encode(self, crops: np.ndarray, precision: str):
@@ -696,8 +758,9 @@ class OpenClipEncoder:
     def _encode(self, crops: np.ndarray, precision: str) -> np.ndarray:
         crops = np.asarray(crops)
         out = np.zeros((len(crops), self.dim), np.float32)
-        for i in range(0, len(crops), self.batch_size):
-            x = self.preprocess(crops[i : i + self.batch_size])
+        step = self.tower.batch(self.batch_size)
+        for i in range(0, len(crops), step):
+            x = self.preprocess(crops[i : i + step])
             f = self._forward(x, precision)
             out[i : i + len(f)] = f.cpu().numpy()
         return out

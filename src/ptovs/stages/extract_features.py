@@ -40,6 +40,7 @@ checkpoint, extra [clip]; the default elsewhere). Or
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import logging
 from collections.abc import Callable, Iterator
@@ -51,6 +52,7 @@ import numpy as np
 
 from ptovs.artifacts import Artifact, Notes, json_dataset, read_json_dataset
 from ptovs.encoders import Encoder, get_encoder, prepare_crop
+from ptovs.encoders.memo import CropMemo
 from ptovs.errors import UselessOutputError
 from ptovs.features import SegmentFeatures, langsplat_suffix, read_langsplat
 from ptovs.registry import scene_input, upstream
@@ -114,8 +116,18 @@ class Config:
     fp32 and bf16 and keeps bf16 only if they agree (worst centred cosine ≥
     0.995, top-1 phrase agreement ≥ 0.98), else fp32; the choice and its figures
     go into the artifact. "fp32" / "bf16" force one."""
+    runtime: Literal["auto", "torch", "onnxruntime", "openvino"] = "auto"
+    """What runs OpenCLIP's image tower: "auto" encodes a sample of the scene's
+    crops with PyTorch and each installed runtime (ONNX Runtime, OpenVINO; extra
+    [clip]) and keeps the fastest whose features are within 1e-4 of PyTorch's
+    (else PyTorch; on CUDA PyTorch without trying); the choice, why, and its
+    figures go into the artifact. A named runtime is used as it is (refused in one
+    line where not installed). Its export is made once per checkpoint, in the
+    user's cache (docs/guide.md, "Runtimes")."""
     device: str = "cpu"
-    batch_size: int = 64
+    batch_size: int = 0
+    """Crops an encoder call; 0: the runtime's own (8 for PyTorch and ONNX
+    Runtime, 16 for OpenVINO: the fastest measured on 2 cores)."""
     crop_size: int = 0
     """Crop side in pixels; 0: the encoder's own input size (224 for the
     stand-in and ViT-B, 256 for MobileCLIP)."""
@@ -237,6 +249,7 @@ def build_encoder(
         pretrained=config.clip_pretrained,
         tokenizer=config.clip_tokenizer,
         precision=config.precision,
+        runtime=config.runtime,
     )
 
 
@@ -274,8 +287,9 @@ def encode_levels(
     resample = getattr(encoder, "resample", None)
     order, where = unique_segments(levels)
     feats = [np.zeros((lv.n, encoder.dim), np.float32) for lv in levels]
-    for start in range(0, len(order), batch_size):  # bounded memory per batch
-        batch = order[start : start + batch_size]
+    step = int(batch_size) or 64
+    for start in range(0, len(order), step):  # bounded memory per batch
+        batch = order[start : start + step]
         crops = np.stack(
             [
                 prepare_crop(image, levels[lv].mask(k), crop_size, resample=resample)
@@ -410,6 +424,50 @@ def decide_precision(
         if notes is not None:
             notes.put("precision", report)
     encoder.precision = report["precision"]
+    return report
+
+
+def decide_runtime(
+    encoder: Encoder,
+    notes: Notes | None,
+    sample: Callable[[], tuple[list, np.ndarray]],
+    crop_size: int,
+) -> dict | None:
+    """The runtime report of this artifact, and the encoder set to it.
+
+    Made once per artifact, as the precision is: kept in `notes` before the first
+    view is written, so a resumed run uses the same runtime (one artifact never
+    mixes two runtimes' rows; a runtime no longer installed is refused in one line).
+    A named runtime is used as it is. "auto" encodes a sample only where a runtime
+    besides PyTorch is installed and can win on this device
+    (`runtime_without_sample`). None for an encoder with no runtime (the stand-in)."""
+    wanted = getattr(encoder, "runtime_wanted", None)
+    if wanted is None:
+        return None
+    report = None if notes is None else notes.get("runtime")
+    if report is not None:
+        encoder.tower.use(report["runtime"])
+        if report["runtime"] != "torch":
+            encoder.precision = "fp32"  # a runtime's rows are fp32
+        log.info("runtime: %s, as chosen when this artifact was begun (not "
+                 "measured again)", report["runtime"])  # fmt: skip
+        return report
+    if wanted != "auto":
+        report = {"runtime": wanted, "reason": "asked for"}
+        if wanted != "torch":
+            encoder.precision = "fp32"
+    else:
+        report = encoder.runtime_without_sample()
+        if report is None:
+            levels, image = sample()
+            crops = precision_sample(image, levels, crop_size,
+                                     resample=getattr(encoder, "resample", None))  # fmt: skip
+            report = encoder.check_runtime(crops)
+    report["precision"] = encoder.precision  # what the rows are computed in
+    log.info("extract-features: runtime = %s (%s: %s)", encoder.runtime,
+             wanted, report["reason"])  # fmt: skip
+    if notes is not None:
+        notes.put("runtime", report)
     return report
 
 
@@ -552,6 +610,7 @@ def run(
     images = config.images
     importing = bool(config.import_dir)
     views = scene.train_views()
+    encoder: Any = None  # importing: no encoder
     if importing:
         folder = Path(config.import_dir)
         if not folder.is_dir():
@@ -561,6 +620,7 @@ def run(
         encoder = build_encoder(config, scene.synthetic, scene.root)
         side = crop_side(config, encoder)
 
+        @functools.cache
         def first_view() -> tuple[list, np.ndarray]:
             v0 = views[0]  # the same sample whatever was skipped
             img0 = to_uint8(scene.load_image(v0))
@@ -568,6 +628,9 @@ def run(
             return cut0, img0
 
         precision = decide_precision(encoder, notes, first_view, side)
+        runtime = decide_runtime(encoder, notes, first_view, side)
+        if runtime is not None:  # a real encoder: each distinct crop encoded once
+            encoder = CropMemo(encoder)
     probe = None
     if images == "auto" and importing:  # imported features: whatever the folder has
         images = "all"
@@ -578,6 +641,8 @@ def run(
             ),
         )  # fmt: skip
         images = probe["images"]
+        if isinstance(encoder, CropMemo):
+            encoder.pin()  # the probe views' crops: not encoded again below
     apps = ["orig"] + {"all": slots, "orig+self": ["self"], "orig": []}[images]
     # the image a view is segmented from when segment = "once"
     source = "self" if config.segment_from == "self" and "self" in apps else "orig"
@@ -618,6 +683,8 @@ def run(
             f.validate(f"{v.name} {app}")
             out.update(f.datasets(app))
         finished += 1
+        if isinstance(encoder, CropMemo):
+            encoder.forget()
         if not importing and not found:
             _note_empty(v.name, empty, notes)
         if not importing and too_many_empty(len(empty), finished, len(views)):
@@ -657,6 +724,8 @@ def run(
                     if importing
                     else encoder_spec(config, encoder),
                     "precision": None if importing else precision,
+                    "runtime": None if importing else runtime,
+                    "crops": _crop_counts(encoder) if not importing else None,
                     "empty_views": None if importing else len(empty),
                     "empty_view_names": None if importing else sorted(empty),
                     "views": len(views),
@@ -664,6 +733,15 @@ def run(
             )
         },
     )
+
+
+def _crop_counts(encoder: Any) -> dict | None:
+    """Crops the encoder ran and crops whose rows were reused (a `CropMemo`'s)."""
+    if not isinstance(encoder, CropMemo):
+        return None
+    log.info("extract-features: %d crops encoded, %d reused (probe views and "
+             "repeated pixels)", encoder.encoded, encoder.hits)  # fmt: skip
+    return {"encoded": encoder.encoded, "reused": encoder.hits}
 
 
 PROBE_VIEWS = 4
@@ -784,6 +862,7 @@ __all__ = [
     "command",
     "crop_sides",
     "decide_precision",
+    "decide_runtime",
     "drop_small_segments",
     "encode_levels",
     "image_features",

@@ -1,0 +1,64 @@
+"""OpenVINO on the CPU, float32 (its hint says so: on a CPU with bf16
+instructions OpenVINO's own default is bf16), latency mode, `threads` threads.
+Its compiled model is cached by OpenVINO under the runtimes' cache, one folder
+per OpenVINO version. One output ("y") runs to one array, several ("y0".."yk")
+to a list in their order."""
+
+from __future__ import annotations
+
+import importlib.util
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from ptovs.encoders.runtimes import cache_dir, refusal
+from ptovs.encoders.runtimes.export import onnx_file
+
+
+class OpenVino:
+    name = "openvino"
+    extra = "clip"
+
+    def missing(self) -> str | None:
+        for pkg in ("openvino", "onnx"):
+            if importlib.util.find_spec(pkg) is None:
+                return refusal(self.name, pkg, self.extra)
+        return None
+
+    def version(self) -> str:
+        import openvino
+
+        return openvino.__version__
+
+    def cannot_win(self, device: str) -> str | None:
+        if not str(device).startswith("cpu"):
+            return "ptovs runs OpenVINO on the CPU only"
+        return None
+
+    def load(self, module: Any, example: Any, key: Mapping[str, Any], threads: int):
+        import openvino as ov
+
+        path = onnx_file(module, example, key)
+        core = ov.Core()
+        blobs = cache_dir() / f"openvino-{self.version()}"
+        blobs.mkdir(parents=True, exist_ok=True)
+        compiled = core.compile_model(
+            str(path), "CPU", {
+                "INFERENCE_PRECISION_HINT": "f32",
+                "PERFORMANCE_HINT": "LATENCY",
+                "INFERENCE_NUM_THREADS": max(1, int(threads)),
+                "CACHE_DIR": str(blobs),
+            },
+        )  # fmt: skip
+        request = compiled.create_infer_request()
+        outputs = list(compiled.outputs)
+        one = len(outputs) == 1 and "y" in outputs[0].get_names()
+
+        def run(x: np.ndarray) -> np.ndarray | list[np.ndarray]:
+            x = np.ascontiguousarray(x, np.float32)
+            out = request.infer({0: x})
+            ys = [np.array(out[o], np.float32) for o in outputs]
+            return ys[0] if one else ys
+
+        return run
