@@ -215,12 +215,14 @@ bench-multiapp: setup
 	  --labels $(MULTIAPP_LABELS) --base male-truth
 
 # real-class encoders and segmenters on 2 cores, random weights (docs/results.md, "Real
-# encoders on a CPU"): crops/s of each encoder in fp32 and bf16; a view's work on a
-# landmark's photos (segmenters, distinct crops, encoders) and the hours at 763 photos;
-# SAM 2.1 and SAM's split between image encoder and point decoding; the crops that
-# min_crop_px would leave out
+# encoders on a CPU"): crops/s of each encoder in fp32 and bf16, and by runtime at 1
+# and 2 threads; a view's work on a landmark's photos (segmenters, distinct crops,
+# encoders) and the hours at 763 photos; SAM 2.1 and SAM's split between image
+# encoder and point decoding; the crops that min_crop_px would leave out
 bench-encoders: setup
 	$(BIN)/python bench/encoders.py --out $(QWORK)/encoders.json
+	$(BIN)/python bench/encoders.py --runtimes --models MobileCLIP2-S0 ViT-B-16 --crops 96 \
+	  --out $(QWORK)/runtimes.json
 	$(BIN)/python bench/real_extract.py --photos 3 --data $(QWORK)/real_extract \
 	  --out $(QWORK)/real_extract.json
 	$(BIN)/python bench/segmenters.py --out $(QWORK)/segmenters.json
@@ -228,10 +230,10 @@ bench-encoders: setup
 	  --photos 20 --views 6 --out $(QWORK)/econ/landmark_s0.json
 
 # the real-class chain end to end (random-weight MobileCLIP2-S0, hier; full method and
-# photo alone, photos to query and select, each stage in its own process) on 100
-# landmark photos, SAM 2.1 tiny on 20 of them, 763-photo hours projected (~1.5 h)
+# photo alone, photos to query and select, each stage in its own process) on 200
+# landmark photos, SAM 2.1 tiny on 20 of them, 763-photo hours projected (~2 h)
 bench-real-chain: setup
-	$(BIN)/python bench/real_chain.py --photos 100 --sam2 20 --work $(QWORK)/real_chain
+	$(BIN)/python bench/real_chain.py --photos 200 --sam2 20 --work $(QWORK)/real_chain
 
 # how each stage's time, peak RSS and output quality grow with the collection: the
 # landmark world at 100, 200, 400 and 763 photos, one size at a time, the default

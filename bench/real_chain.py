@@ -1,6 +1,6 @@
 """The real-class chain measured end to end: photos to query and select.
 
-    python bench/real_chain.py --photos 100 --work work/real_chain     # make bench-real-chain
+    python bench/real_chain.py --photos 200 --work work/real_chain     # make bench-real-chain
 
 The scene is the `landmark` preset's world with --photos train photos (about 700 px
 on the long side, as PT-OVS's; generated under <work>/data when missing). The
@@ -175,7 +175,7 @@ def growth_exponents() -> dict[str, float]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--photos", type=int, default=100)
+    ap.add_argument("--photos", type=int, default=200)
     ap.add_argument("--recipes", nargs="*", default=["full", "photo"],
                     choices=list(RECIPES))  # fmt: skip
     ap.add_argument("--precision", default="fp32", choices=["fp32", "bf16", "auto"])
