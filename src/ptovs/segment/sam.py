@@ -10,11 +10,17 @@ predictor (through `SamPoints`) and `utils.amg` helpers.
 
 The model comes from a local checkpoint (`sam_checkpoint`, ViT-H in the paper);
 tests pass a tiny randomly initialised `Sam` as `model=`.
+
+`runtime` runs the image encoder (nearly all of SAM's time on a CPU) in PyTorch,
+ONNX Runtime or OpenVINO (`ptovs.encoders.runtimes`), or "auto": decided on the
+first image (`EncoderRuntime`). The prompt encoder and mask decoder stay in
+PyTorch.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +28,9 @@ import numpy as np
 import torch
 
 from ptovs.compat import import_backend
+from ptovs.encoders import runtimes
+from ptovs.encoders.runtimes.choose import relative_diff
+from ptovs.encoders.runtimes.tower import Tower
 from ptovs.segment.generator import (
     LEVEL_OUTPUTS,
     MaskGenerator,
@@ -44,6 +53,75 @@ def load_sam(checkpoint: str | Path, model_type: str = "vit_h", device: str = "c
     state = torch.load(path, map_location="cpu", weights_only=True)
     model.load_state_dict(state)
     return model.to(device).eval()
+
+
+class _OwnForward(torch.nn.Module):
+    """What the tower runs and exports: the encoder's own (class) forward, its
+    instance's being the runtime's; `flat` makes a dict output a tuple."""
+
+    def __init__(self, encoder: torch.nn.Module, flat: Callable | None = None):
+        super().__init__()
+        self.encoder = encoder
+        self.flat = flat
+
+    def forward(self, x: torch.Tensor) -> Any:
+        y = type(self.encoder).forward(self.encoder, x)
+        return y if self.flat is None else self.flat(y)
+
+
+class EncoderRuntime:
+    """SAM's (or SAM 2.1's) image encoder run through a `Tower` in `runtime`.
+
+    The encoder stays in the model (its state dict, the attributes the predictor
+    reads: `img_size`); only its `forward` is replaced on the instance, as sam2
+    does for torch.compile. PyTorch runs the encoder's own forward, untouched;
+    another runtime runs the export of `_OwnForward` (`flat`: a dict output as a
+    tuple, `rebuild`: the tuple back as the dict the caller reads).
+
+    "auto" is decided on the first image the encoder sees (the segmenter's first
+    `set_image`): the fastest installed runtime whose outputs agree with
+    PyTorch's on it (max |Δ| / max |PyTorch| ≤ 1e-4, `choose.relative_diff`)
+    and that is MIN_SPEEDUP faster, else PyTorch. `report` says which and why
+    (None before the first image)."""
+
+    def __init__(
+        self,
+        encoder: torch.nn.Module,
+        size: int,
+        key: Callable[[], Mapping[str, Any]],
+        device: str | torch.device,
+        runtime: str = "torch",
+        flat: Callable | None = None,
+        rebuild: Callable | None = None,
+    ):
+        self.own = _OwnForward(encoder, flat)
+        self.tower = Tower(self.own, (3, size, size), key, device, runtime)
+        self.rebuild = rebuild or (lambda y: y)
+        self.report: dict[str, Any] | None = None
+        encoder.forward = self.forward
+
+    @property
+    def name(self) -> str:
+        """The runtime the encoder runs in now."""
+        return self.tower.name
+
+    def decide(self, x: torch.Tensor) -> dict[str, Any]:
+        """The runtime report, "auto" decided on the input batch `x`."""
+        if self.tower.wanted != "auto":
+            return {"runtime": self.tower.wanted, "reason": "asked for"}
+        report = self.tower.without_sample() or self.tower.check(
+            x, compare=relative_diff, unit="images"
+        )
+        log.info("segmenter: image encoder runtime = %s (auto: %s)",
+                 report["runtime"], report["reason"])  # fmt: skip
+        return report
+
+    def forward(self, x: torch.Tensor) -> Any:
+        if self.report is None:
+            self.report = self.decide(x)
+        if self.tower.name == "torch":
+            return type(self.own.encoder).forward(self.own.encoder, x)
+        return self.rebuild(self.tower(x))
 
 
 class SamPoints:
@@ -79,7 +157,8 @@ class SamPoints:
 class SamSegmenter(MaskGenerator):
     """SAM from `checkpoint` (or `model=`); `options` are `MaskGenerator`'s
     (levels, points_per_side, crop_n_layers, the filters' thresholds,
-    level_order: "index" by default, as LangSplat)."""
+    level_order: "index" by default, as LangSplat). `runtime` runs the image
+    encoder: "torch", "onnxruntime", "openvino" or "auto" (`EncoderRuntime`)."""
 
     name = "sam"
 
@@ -89,6 +168,7 @@ class SamSegmenter(MaskGenerator):
         model_type: str = "vit_h",
         device: str = "cpu",
         model: Any = None,
+        runtime: str = "torch",
         **options: Any,
     ):
         self.sa = import_backend("segment_anything")
@@ -97,10 +177,36 @@ class SamSegmenter(MaskGenerator):
             if model is not None
             else load_sam(checkpoint, model_type, device)
         )
+        encoder = self.model.image_encoder
+        checkpoint = "" if model is not None else str(checkpoint)
+
+        def key() -> dict[str, Any]:
+            """What decides the exported encoder's arithmetic: the weights (the
+            checkpoint file's digest; a model given: its tensors'), type, size."""
+            weights = (runtimes.file_digest(checkpoint) if checkpoint
+                       else runtimes.tensors_digest(encoder.state_dict()))  # fmt: skip
+            return {"net": "sam image encoder", "weights": weights,
+                    "model": model_type if checkpoint else "given",
+                    "size": int(encoder.img_size)}  # fmt: skip
+
+        self.encoder_runtime = EncoderRuntime(
+            encoder, int(encoder.img_size), key, device, runtime
+        )
         self.predictor = self.sa.SamPredictor(self.model)
         amg = import_backend("segment_anything.utils.amg")
         options.setdefault("points_per_batch", default_points_per_batch(device))
         super().__init__(SamPoints(self.predictor), amg, **options)
+
+    @property
+    def runtime(self) -> str:
+        """The runtime the image encoder runs in now."""
+        return self.encoder_runtime.name
+
+    @property
+    def runtime_report(self) -> dict[str, Any] | None:
+        """Which runtime runs the image encoder and why (JSON-serialisable; "auto":
+        the figures it was decided on); None before the first image."""
+        return self.encoder_runtime.report
 
 
 def tiny_sam(seed: int = 0, img_size: int = 256):
@@ -149,4 +255,11 @@ def tiny_sam(seed: int = 0, img_size: int = 256):
     return model.eval()
 
 
-__all__ = ["LEVEL_OUTPUTS", "SamPoints", "SamSegmenter", "load_sam", "tiny_sam"]
+__all__ = [
+    "LEVEL_OUTPUTS",
+    "EncoderRuntime",
+    "SamPoints",
+    "SamSegmenter",
+    "load_sam",
+    "tiny_sam",
+]

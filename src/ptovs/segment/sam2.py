@@ -26,6 +26,11 @@ The model is built from sam2's own config (`SAM2_MODELS`: tiny, small, base_plus
 large) on `device` and loaded from a local checkpoint (`sam_checkpoint`; sam2's
 checkpoints hold {"model": state_dict}) with `torch.load(weights_only=True)`;
 nothing is downloaded.
+
+`runtime` runs the Hiera image encoder in PyTorch, ONNX Runtime or OpenVINO, or
+"auto" (decided on the first image), as SAM's (`ptovs.segment.sam.EncoderRuntime`):
+its dict output travels through the export as a tuple (`flat_outputs`) and is
+rebuilt (`dict_outputs`).
 """
 
 from __future__ import annotations
@@ -37,11 +42,13 @@ import numpy as np
 import torch
 
 from ptovs.compat import import_backend
+from ptovs.encoders import runtimes
 from ptovs.segment.generator import (
     MaskGenerator,
     default_points_per_batch,
     local_checkpoint,
 )
+from ptovs.segment.sam import EncoderRuntime
 
 SAM2_MODELS = {
     "tiny": "sam2.1_hiera_t.yaml",
@@ -114,6 +121,21 @@ def load_sam2(
     return model.to(device).eval()
 
 
+def flat_outputs(out: dict) -> tuple[torch.Tensor, ...]:
+    """SAM 2.1's `ImageEncoder` output as a tuple: the FPN levels, then their
+    position encodings ("vision_features" is the last level: not repeated)."""
+    fpn, pos = out["backbone_fpn"], out["vision_pos_enc"]
+    return (*fpn, *pos)
+
+
+def dict_outputs(ys: tuple[torch.Tensor, ...]) -> dict:
+    """`flat_outputs`' tuple back as `ImageEncoder` returns it (new lists: the
+    model's `forward_image` replaces levels in them)."""
+    n = len(ys) // 2
+    fpn, pos = list(ys[:n]), list(ys[n:])
+    return {"vision_features": fpn[-1], "vision_pos_enc": pos, "backbone_fpn": fpn}
+
+
 class Sam2Points:
     """sam2's `SAM2ImagePredictor` as the generator's `PointPredictor` (built
     without hole filling: `max_hole_area` = `max_sprinkle_area` = 0)."""
@@ -144,7 +166,8 @@ class Sam2Points:
 class Sam2Segmenter(MaskGenerator):
     """SAM 2.1 from `checkpoint` (or `model=`, a built `SAM2Base`); `options` are
     `MaskGenerator`'s (levels, points_per_side, crop_n_layers, the filters,
-    level_order: "area" by default)."""
+    level_order: "area" by default). `runtime` runs the image encoder: "torch",
+    "onnxruntime", "openvino" or "auto" (`EncoderRuntime`)."""
 
     name = "sam2"
 
@@ -154,6 +177,7 @@ class Sam2Segmenter(MaskGenerator):
         model_type: str = "tiny",
         device: str = "cpu",
         model: Any = None,
+        runtime: str = "torch",
         **options: Any,
     ):
         self.model = (
@@ -161,12 +185,39 @@ class Sam2Segmenter(MaskGenerator):
             if model is not None
             else load_sam2(checkpoint, model_type, device)
         )
+        encoder = self.model.image_encoder
+        size = int(self.model.image_size)
+        checkpoint = "" if model is not None else str(checkpoint)
+
+        def key() -> dict[str, Any]:
+            """What decides the exported encoder's arithmetic: the weights (the
+            checkpoint file's digest; a model given: its tensors'), model, size."""
+            weights = (runtimes.file_digest(checkpoint) if checkpoint
+                       else runtimes.tensors_digest(encoder.state_dict()))  # fmt: skip
+            return {"net": "sam2.1 image encoder", "weights": weights,
+                    "model": model_type if checkpoint else "given",
+                    "size": size}  # fmt: skip
+
+        self.encoder_runtime = EncoderRuntime(
+            encoder, size, key, device, runtime, flat_outputs, dict_outputs
+        )
         predictor_cls = import_backend("sam2.sam2_image_predictor").SAM2ImagePredictor
         self.predictor = predictor_cls(self.model)
         amg = import_backend("sam2.utils.amg")
         options.setdefault("level_order", "area")
         options.setdefault("points_per_batch", default_points_per_batch(device))
         super().__init__(Sam2Points(self.predictor), amg, **options)
+
+    @property
+    def runtime(self) -> str:
+        """The runtime the image encoder runs in now."""
+        return self.encoder_runtime.name
+
+    @property
+    def runtime_report(self) -> dict[str, Any] | None:
+        """Which runtime runs the image encoder and why (JSON-serialisable; "auto":
+        the figures it was decided on); None before the first image."""
+        return self.encoder_runtime.report
 
 
 __all__ = [
@@ -176,6 +227,8 @@ __all__ = [
     "Sam2Points",
     "Sam2Segmenter",
     "build_sam2_model",
+    "dict_outputs",
+    "flat_outputs",
     "load_sam2",
     "sam2_kind",
     "sam2_state_dict",
