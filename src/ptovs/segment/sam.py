@@ -11,7 +11,7 @@ predictor (through `SamPoints`) and `utils.amg` helpers.
 The model comes from a local checkpoint (`sam_checkpoint`, ViT-H in the paper);
 tests pass a tiny randomly initialised `Sam` as `model=`.
 
-`runtime` runs the image encoder (nearly all of SAM's time on a CPU) in PyTorch,
+`runtime` runs the image encoder (the part of SAM a runtime can take) in PyTorch,
 ONNX Runtime or OpenVINO (`ptovs.encoders.runtimes`), or "auto": decided on the
 first image (`EncoderRuntime`). The prompt encoder and mask decoder stay in
 PyTorch.
