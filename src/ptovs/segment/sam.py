@@ -154,7 +154,25 @@ class SamPoints:
         self.predictor.reset_image()
 
 
-class SamSegmenter(MaskGenerator):
+class RuntimeOf:
+    """`runtime` and `runtime_report` of a segmenter holding an `EncoderRuntime`
+    (`self.encoder_runtime`): SAM's and SAM 2.1's."""
+
+    encoder_runtime: EncoderRuntime
+
+    @property
+    def runtime(self) -> str:
+        """The runtime the image encoder runs in now."""
+        return self.encoder_runtime.name
+
+    @property
+    def runtime_report(self) -> dict[str, Any] | None:
+        """Which runtime runs the image encoder and why (JSON-serialisable; "auto":
+        the figures it was decided on); None before the first image."""
+        return self.encoder_runtime.report
+
+
+class SamSegmenter(RuntimeOf, MaskGenerator):
     """SAM from `checkpoint` (or `model=`); `options` are `MaskGenerator`'s
     (levels, points_per_side, crop_n_layers, the filters' thresholds,
     level_order: "index" by default, as LangSplat). `runtime` runs the image
@@ -196,17 +214,6 @@ class SamSegmenter(MaskGenerator):
         amg = import_backend("segment_anything.utils.amg")
         options.setdefault("points_per_batch", default_points_per_batch(device))
         super().__init__(SamPoints(self.predictor), amg, **options)
-
-    @property
-    def runtime(self) -> str:
-        """The runtime the image encoder runs in now."""
-        return self.encoder_runtime.name
-
-    @property
-    def runtime_report(self) -> dict[str, Any] | None:
-        """Which runtime runs the image encoder and why (JSON-serialisable; "auto":
-        the figures it was decided on); None before the first image."""
-        return self.encoder_runtime.report
 
 
 def tiny_sam(seed: int = 0, img_size: int = 256):

@@ -48,7 +48,7 @@ from ptovs.segment.generator import (
     default_points_per_batch,
     local_checkpoint,
 )
-from ptovs.segment.sam import EncoderRuntime
+from ptovs.segment.sam import EncoderRuntime, RuntimeOf
 
 SAM2_MODELS = {
     "tiny": "sam2.1_hiera_t.yaml",
@@ -163,7 +163,7 @@ class Sam2Points:
         self.predictor.reset_predictor()
 
 
-class Sam2Segmenter(MaskGenerator):
+class Sam2Segmenter(RuntimeOf, MaskGenerator):
     """SAM 2.1 from `checkpoint` (or `model=`, a built `SAM2Base`); `options` are
     `MaskGenerator`'s (levels, points_per_side, crop_n_layers, the filters,
     level_order: "area" by default). `runtime` runs the image encoder: "torch",
@@ -207,17 +207,6 @@ class Sam2Segmenter(MaskGenerator):
         options.setdefault("level_order", "area")
         options.setdefault("points_per_batch", default_points_per_batch(device))
         super().__init__(Sam2Points(self.predictor), amg, **options)
-
-    @property
-    def runtime(self) -> str:
-        """The runtime the image encoder runs in now."""
-        return self.encoder_runtime.name
-
-    @property
-    def runtime_report(self) -> dict[str, Any] | None:
-        """Which runtime runs the image encoder and why (JSON-serialisable; "auto":
-        the figures it was decided on); None before the first image."""
-        return self.encoder_runtime.report
 
 
 __all__ = [
