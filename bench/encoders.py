@@ -3,7 +3,7 @@
     python bench/encoders.py --out work/encoders.json                # the table's models
     python bench/encoders.py --models MobileCLIP2-S0 --threads 2 --crops 64
     python bench/encoders.py --runtimes --models MobileCLIP2-S0 ViT-B-16 \
-        --out docs/results/runtimes.json                             # make bench-runtimes
+        --crops 96 --out work/runtimes.json             # both: make bench-encoders
 
 `--runtimes`: for each model, at 1 and then 2 threads in the same run, the fp32 image
 tower's crops a second in PyTorch at a batch of 64 (the old default), in each

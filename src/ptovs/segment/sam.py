@@ -116,6 +116,12 @@ class EncoderRuntime:
                  report["runtime"], report["reason"])  # fmt: skip
         return report
 
+    def use(self, report: Mapping[str, Any]) -> None:
+        """Run as `report` (one made earlier, e.g. kept in a partial artifact's
+        notes) says, without deciding again."""
+        self.tower.use(report["runtime"])
+        self.report = dict(report)
+
     def forward(self, x: torch.Tensor) -> Any:
         if self.report is None:
             self.report = self.decide(x)
@@ -170,6 +176,11 @@ class RuntimeOf:
         """Which runtime runs the image encoder and why (JSON-serialisable; "auto":
         the figures it was decided on); None before the first image."""
         return self.encoder_runtime.report
+
+    def use_runtime(self, report: Mapping[str, Any]) -> None:
+        """Run the image encoder as `report` says (`runtime_report` of an earlier
+        run): a resumed run does not decide again."""
+        self.encoder_runtime.use(report)
 
 
 class SamSegmenter(RuntimeOf, MaskGenerator):

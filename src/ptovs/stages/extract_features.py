@@ -117,13 +117,14 @@ class Config:
     0.995, top-1 phrase agreement ≥ 0.98), else fp32; the choice and its figures
     go into the artifact. "fp32" / "bf16" force one."""
     runtime: Literal["auto", "torch", "onnxruntime", "openvino"] = "auto"
-    """What runs OpenCLIP's image tower: "auto" encodes a sample of the scene's
-    crops with PyTorch and each installed runtime (ONNX Runtime, OpenVINO; extra
-    [clip]) and keeps the fastest whose features are within 1e-4 of PyTorch's
-    (else PyTorch; on CUDA PyTorch without trying); the choice, why, and its
-    figures go into the artifact. A named runtime is used as it is (refused in one
-    line where not installed). Its export is made once per checkpoint, in the
-    user's cache (docs/guide.md, "Runtimes")."""
+    """What runs the image encoders, OpenCLIP's tower and SAM's or SAM 2.1's:
+    "auto" encodes a sample (the scene's crops; the segmenter's first photo) with
+    PyTorch and each installed runtime (ONNX Runtime, OpenVINO; extra [clip]) and
+    keeps the fastest whose outputs are within 1e-4 of PyTorch's (else PyTorch;
+    on CUDA PyTorch without trying); each choice, why, and its figures go into the
+    artifact. A named runtime is used as it is (refused in one line where not
+    installed). Its export is made once per checkpoint, in the user's cache
+    (docs/guide.md, "Runtimes")."""
     device: str = "cpu"
     batch_size: int = 0
     """Crops an encoder call; 0: the runtime's own (8 for PyTorch and ONNX
@@ -205,6 +206,7 @@ def build_segmenter(config: Config, scene_root: Path | None = None) -> Segmenter
         points_per_side=config.sam_points_per_side,
         crop_n_layers=config.sam_crop_n_layers,
         device=config.device,
+        runtime=config.runtime,
     )
 
 
@@ -471,6 +473,25 @@ def decide_runtime(
     return report
 
 
+def restore_segmenter_runtime(segmenter: Segmenter, notes: Notes | None) -> None:
+    """A resumed run's SAM-class segmenter runs its image encoder in the runtime
+    its artifact was begun with (kept in `notes`), not deciding again."""
+    report = None if notes is None else notes.get("segmenter_runtime")
+    if report is not None and hasattr(segmenter, "use_runtime"):
+        segmenter.use_runtime(report)
+        log.info("segmenter runtime: %s, as chosen when this artifact was begun "
+                 "(not measured again)", report["runtime"])  # fmt: skip
+
+
+def note_segmenter_runtime(segmenter: Segmenter, notes: Notes | None) -> None:
+    """Keep a SAM-class segmenter's runtime decision (made on its first image) in
+    `notes` before a view of its is written."""
+    report = getattr(segmenter, "runtime_report", None)
+    if report is None or notes is None or notes.get("segmenter_runtime") is not None:
+        return
+    notes.put("segmenter_runtime", report)
+
+
 EMPTY_FIRST = 3
 """Stop when each of the first this many views has no segment at all."""
 EMPTY_AFTER = 5
@@ -617,6 +638,7 @@ def run(
             raise FileNotFoundError(f"import_dir {folder} is not a folder")
     else:
         segmenter = build_segmenter(config, scene.root)
+        restore_segmenter_runtime(segmenter, notes)
         encoder = build_encoder(config, scene.synthetic, scene.root)
         side = crop_side(config, encoder)
 
@@ -685,6 +707,8 @@ def run(
         finished += 1
         if isinstance(encoder, CropMemo):
             encoder.forget()
+        if not importing:
+            note_segmenter_runtime(segmenter, notes)
         if not importing and not found:
             _note_empty(v.name, empty, notes)
         if not importing and too_many_empty(len(empty), finished, len(views)):
@@ -725,6 +749,9 @@ def run(
                     else encoder_spec(config, encoder),
                     "precision": None if importing else precision,
                     "runtime": None if importing else runtime,
+                    "segmenter_runtime": None
+                    if importing
+                    else getattr(segmenter, "runtime_report", None),
                     "crops": _crop_counts(encoder) if not importing else None,
                     "empty_views": None if importing else len(empty),
                     "empty_view_names": None if importing else sorted(empty),

@@ -41,8 +41,9 @@ BACKENDS: dict[str, str] = {
 
 RUNTIMES = ("auto", *BACKENDS)
 
-Runner = Callable[[np.ndarray], np.ndarray]
-"""A loaded network: float32 [B, C, H, W] → float32 [B, ...]."""
+Runner = Callable[[np.ndarray], np.ndarray | list[np.ndarray]]
+"""A loaded network: float32 [B, C, H, W] → float32 [B, ...], or a list of such
+arrays in the module's output order where it returns several (SAM 2.1's encoder)."""
 
 
 class Backend(Protocol):
