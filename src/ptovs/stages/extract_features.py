@@ -473,23 +473,26 @@ def decide_runtime(
     return report
 
 
-def restore_segmenter_runtime(segmenter: Segmenter, notes: Notes | None) -> None:
+def restore_segmenter_runtime(segmenter: Segmenter, notes: Notes | None) -> bool:
     """A resumed run's SAM-class segmenter runs its image encoder in the runtime
-    its artifact was begun with (kept in `notes`), not deciding again."""
+    its artifact was begun with (kept in `notes`), not deciding again. True where
+    a decision was kept (nothing more to note)."""
     report = None if notes is None else notes.get("segmenter_runtime")
     if report is not None and hasattr(segmenter, "use_runtime"):
         segmenter.use_runtime(report)
         log.info("segmenter runtime: %s, as chosen when this artifact was begun "
                  "(not measured again)", report["runtime"])  # fmt: skip
+    return report is not None
 
 
-def note_segmenter_runtime(segmenter: Segmenter, notes: Notes | None) -> None:
+def note_segmenter_runtime(segmenter: Segmenter, notes: Notes | None) -> bool:
     """Keep a SAM-class segmenter's runtime decision (made on its first image) in
-    `notes` before a view of its is written."""
+    `notes` before a view of its is written. True once kept."""
     report = getattr(segmenter, "runtime_report", None)
-    if report is None or notes is None or notes.get("segmenter_runtime") is not None:
-        return
+    if report is None or notes is None:
+        return False
     notes.put("segmenter_runtime", report)
+    return True
 
 
 EMPTY_FIRST = 3
@@ -632,13 +635,14 @@ def run(
     importing = bool(config.import_dir)
     views = scene.train_views()
     encoder: Any = None  # importing: no encoder
+    seg_noted = True  # importing: no segmenter runtime to note
     if importing:
         folder = Path(config.import_dir)
         if not folder.is_dir():
             raise FileNotFoundError(f"import_dir {folder} is not a folder")
     else:
         segmenter = build_segmenter(config, scene.root)
-        restore_segmenter_runtime(segmenter, notes)
+        seg_noted = restore_segmenter_runtime(segmenter, notes)
         encoder = build_encoder(config, scene.synthetic, scene.root)
         side = crop_side(config, encoder)
 
@@ -707,8 +711,8 @@ def run(
         finished += 1
         if isinstance(encoder, CropMemo):
             encoder.forget()
-        if not importing:
-            note_segmenter_runtime(segmenter, notes)
+        if not importing and not seg_noted:  # the notes file read and written once
+            seg_noted = note_segmenter_runtime(segmenter, notes)
         if not importing and not found:
             _note_empty(v.name, empty, notes)
         if not importing and too_many_empty(len(empty), finished, len(views)):
