@@ -57,6 +57,7 @@ RECON_RECIPES = {
     "auto": ['reconstruct.wild="auto"', 'reconstruct.stop="plateau"'],
     "wild-10k": ["reconstruct.max_gaussians=10000"],
     "wild-5k": ["reconstruct.max_gaussians=5000"],
+    "wild-sky4": ["reconstruct.sky_stride=4"],
 }
 REAL_SETS = ("herzjesu_p8", "fountain_p11")
 BUDGETS = ("wild-10k", "wild-5k")

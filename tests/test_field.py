@@ -57,6 +57,36 @@ def test_cpu_nets_shapes_and_ranges(concat):
     assert sky.shape == (5, 7, 3) and float(sky.min()) > 0 and float(sky.max()) < 1
 
 
+@torch.no_grad()
+def test_the_sky_stride_is_the_models_own_unless_set_and_close_to_per_pixel():
+    """sky_stride 0: per pixel for the learned model, SKY_STRIDE for the colour rung;
+    set, either model paints its sky once per block, bilinear between, within a
+    few thousandths of the per-pixel sky (a smooth function of the direction);
+    negative strides are refused."""
+    from ptovs.nets.wild import SKY_STRIDE
+
+    assert WildNets("cpu", 16).sky_stride == 1
+    assert WildNets("cpu", 16, learned=False).sky_stride == SKY_STRIDE
+    assert WildNets("cpu", 16, sky_stride=4).sky_stride == 4
+    with pytest.raises(ValueError, match="sky_stride"):
+        WildNets("cpu", 16, sky_stride=-1)
+    torch.manual_seed(0)
+    nets = WildNets("cpu", 16)
+    emb = torch.randn(nets.embed_dim)
+    v, u = torch.meshgrid(
+        torch.linspace(-0.5, 0.5, 96), torch.linspace(-0.7, 0.7, 128), indexing="ij"
+    )
+    dirs = torch.nn.functional.normalize(
+        torch.stack((u, v, torch.ones_like(u)), -1), dim=-1
+    )
+    full = nets.background(dirs, emb)
+    nets.sky_stride = 4
+    coarse = nets.background(dirs, emb)
+    assert coarse.shape == full.shape
+    err = float((coarse - full).abs().max())
+    assert 0.0 < err < 0.01  # another computation, and close to the per-pixel sky
+
+
 def test_authors_preset_layer_sizes():
     """The authors' layers (docs/method.md §2): f_α 4→128…512→32, f_γ 167→FC256, f_β 16…512."""
     nets = WildNets("authors", 36, mask_concat="input", background=False)

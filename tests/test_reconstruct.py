@@ -710,7 +710,7 @@ def test_import_through_cli_and_refusals(tmp_path, tiny_scene_dir):
 @pytest.mark.parametrize("appearance", ["affine", "shading"])
 def test_appearance_options_round_trip(tmp_path, tiny_scene_dir, appearance):
     """The measured options (affine or shading appearance, colour map, image
-    statistics, adaptive budget) train, store, load and bake: the loaded field
+    statistics, adaptive budget, a strided sky) train, store, load and bake: the loaded field
     renders the stored own-appearance PSNR, and the PLY bakes without NaN."""
     from ptovs.field.export import baked_sh
 
@@ -722,6 +722,7 @@ def test_appearance_options_round_trip(tmp_path, tiny_scene_dir, appearance):
         "iterations=150",
         "densify_from=20",
         "densify_every=20",
+        *(["sky_stride=2"] if appearance == "shading" else []),
     ]
     path = _reconstruct(
         tmp_path / "w", tiny_scene_dir, *sum([["--set", s] for s in sets], [])
@@ -732,6 +733,8 @@ def test_appearance_options_round_trip(tmp_path, tiny_scene_dir, appearance):
         field = WildField.from_artifact(art)
     assert root["app_embed"].shape == (len(field), 16)
     assert field.nets.f_map is not None and field.nets.stats
+    # the stored field paints its sky at the stride it was trained with
+    assert field.nets.sky_stride == (2 if appearance == "shading" else 1)
     view = scene.train_views()[0]
     emb = field.embeddings_of([view.name])
     assert emb.shape == (1, 40)

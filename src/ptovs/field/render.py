@@ -315,6 +315,7 @@ class WildField:
                 color_map="f_map.weight" in state,
                 stats=bool(cfg.get("image_stats", False)) and not cfg.get("import_dir"),
                 learned=any(k.startswith("f_alpha.") for k in state),
+                sky_stride=int(cfg.get("sky_stride", 0)),  # as it was trained
             )
             nets.load_state_dict(state)
             nets.eval()

@@ -408,8 +408,13 @@ class WildNets(nn.Module):
         color_map: bool = False,
         stats: bool = False,
         learned: bool = True,
+        sky_stride: int = 0,
     ):
         super().__init__()
+        if sky_stride < 0:
+            raise ValueError(
+                f"sky_stride must be 0 (the model's own) or more: {sky_stride}"
+            )
         self.preset = PRESETS[preset] if isinstance(preset, str) else preset
         p = self.preset
         if p.beta_res % 2 ** (len(p.beta_widths) - 1):
@@ -437,9 +442,11 @@ class WildNets(nn.Module):
             nn.init.zeros_(self.f_gamma.out.weight)  # ΔSH = 0 at the start
             nn.init.zeros_(self.f_gamma.out.bias)
         self.sky = SkyNet(d) if background else None
-        # the colour rung's sky at a quarter of the resolution: a smooth function of
-        # the direction, and per pixel it would cost the rung as much as f_α and f_β
-        self.sky_stride = 1 if self.learned else SKY_STRIDE
+        # the sky once per `sky_stride` × `sky_stride` pixels, bilinear between: a
+        # smooth function of the direction; per pixel it costs the colour rung as
+        # much as f_α and f_β, and the learned model 14 % of its step (bench).
+        # 0: the model's own, per pixel for the learned model, SKY_STRIDE for the rung
+        self.sky_stride = int(sky_stride) or (1 if self.learned else SKY_STRIDE)
         self.f_map = nn.Linear(d, 12) if color_map else None
         if self.f_map is not None:  # the identity map at the start
             nn.init.zeros_(self.f_map.weight)

@@ -79,6 +79,10 @@ class Config:
     delta_sh_scale: float = 4.0
     """delta-sh: ΔSH = scale·tanh(·) (the authors' 1 limits the DC colour shift to
     ±0.28); shading: the factor on its linear map's output (its step size)."""
+    sky_stride: int = 0
+    """The sky head runs once per `sky_stride` × `sky_stride` pixels, bilinear
+    between (a smooth function of the ray direction). 0: per pixel for the
+    in-the-wild model, 4 for the colour rung."""
     sh_degree: int = 3
     iterations: int = 2500
     """Training steps (one photo each); the upper bound when `stop = "plateau"`."""
