@@ -253,6 +253,38 @@ def test_ssim_matches_opencv_quality_reference():
     )
 
 
+@pytest.mark.parametrize("shape", [(40, 50), (64, 96), (9, 30)])
+def test_ssim_is_pytorch_msssims_in_float64_with_its_gradient(shape):
+    """Our one-convolution-per-axis SSIM against pytorch_msssim's ten (float64,
+    the same window, the valid region; (9, 30): the window shrunk to 9)."""
+    from pytorch_msssim import ssim as reference
+
+    from ptovs.field.losses import SSIM_WINDOW, _window
+
+    rng = np.random.default_rng(2)
+    a = torch.tensor(rng.random((*shape, 3)), requires_grad=True)
+    b = torch.tensor(np.clip(a.detach().numpy() + rng.normal(0, 0.1, a.shape), 0, 1))
+    ours = ssim(a, b)
+    (g_ours,) = torch.autograd.grad(ours, a)
+    win = min(SSIM_WINDOW, shape[0] - 1 + shape[0] % 2, shape[1] - 1 + shape[1] % 2)
+    # its window in float64 (its own is built in float32: 1e-8 apart)
+    window = _window(win).reshape(1, 1, 1, win).repeat(3, 1, 1, 1)
+    ref = reference(
+        a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None], data_range=1.0,
+        win_size=win, win=window,
+    )  # fmt: skip
+    (g_ref,) = torch.autograd.grad(ref, a)
+    assert ours.dtype == torch.float64
+    assert float(abs(ours - ref)) < 1e-12
+    assert (
+        float((g_ours - g_ref).abs().max()) < 1e-12 * float(g_ref.abs().max()) + 1e-15
+    )
+    # a negative control: another window is another SSIM
+    other = reference(a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None],
+                      data_range=1.0, win_size=win - 2, win_sigma=1.5)  # fmt: skip
+    assert float(abs(ours - other)) > 1e-6
+
+
 def test_ssim_small_and_constant_images_finite():
     for h, w in [(1, 1), (2, 3), (5, 5), (12, 9)]:
         x = torch.zeros(h, w, 3, requires_grad=True)
