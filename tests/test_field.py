@@ -285,6 +285,27 @@ def test_ssim_is_pytorch_msssims_in_float64_with_its_gradient(shape):
     assert float(abs(ours - other)) > 1e-6
 
 
+@pytest.mark.parametrize("win", [11, 5])
+def test_the_opencv_blur_and_its_backward_are_the_convolutions(win):
+    """SSIM's moment blur on the CPU (OpenCV, a hand-written backward) against the
+    grouped convolutions used elsewhere, float64: values and gradients, and
+    torch's gradcheck on the backward."""
+    from ptovs.field.losses import _Blur, _blur_conv
+
+    rng = np.random.default_rng(3)
+    z = torch.tensor(rng.random((4, 23, 31)), requires_grad=True)
+    w = torch.tensor(rng.random((4, 23 - win + 1, 31 - win + 1)))
+    ours = _Blur.apply(z, win)
+    ref = _blur_conv(z[None], win)[0]
+    assert ours.shape == ref.shape
+    assert float((ours - ref).abs().max()) < 1e-12
+    (g_ours,) = torch.autograd.grad((ours * w).sum(), z)
+    (g_ref,) = torch.autograd.grad((ref * w).sum(), z)
+    assert float((g_ours - g_ref).abs().max()) < 1e-12
+    small = torch.tensor(rng.random((2, 9, 12)), requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: _Blur.apply(t, 5), (small,))
+
+
 def test_ssim_small_and_constant_images_finite():
     for h, w in [(1, 1), (2, 3), (5, 5), (12, 9)]:
         x = torch.zeros(h, w, 3, requires_grad=True)

@@ -39,19 +39,63 @@ def _ssim(x: Tensor, y: Tensor, win: int) -> Tensor:
     """Mean SSIM of [1, C, H, W] images over the valid region of a separable
     Gaussian window (pytorch_msssim's `ssim`, data range 1, K = 0.01, 0.03).
 
-    The five local moments (x, y, x², y², xy) of every channel go through one
-    grouped convolution per axis, not ten: 1.9x faster with its backward at
-    770 × 512 (105 → 55 ms), the same value within 1e-9."""
+    The five local moments (x, y, x², y², xy) of every channel are blurred
+    together: on the CPU by OpenCV's separable filter (`_Blur`: 15 planes at
+    770 × 512 in ~6 ms against ~24 for torch's convolutions), elsewhere by one
+    grouped convolution per axis (pytorch_msssim runs ten)."""
     c = x.shape[1]
     z = torch.cat((x, y, x * x, y * y, x * y), 1)
-    g = _window(win).to(z).repeat(5 * c, 1)  # [5C, win]
-    z = F.conv2d(z, g.reshape(5 * c, 1, 1, win), groups=5 * c)
-    z = F.conv2d(z, g.reshape(5 * c, 1, win, 1), groups=5 * c)
+    if z.device.type == "cpu" and z.dtype in (torch.float32, torch.float64):
+        z = _Blur.apply(z[0], win)[None]
+    else:
+        z = _blur_conv(z, win)
     mx, my, sxx, syy, sxy = z.split(c, 1)
     mx2, my2, mxy = mx * mx, my * my, mx * my
     cs = (2 * (sxy - mxy) + SSIM_C2) / ((sxx - mx2) + (syy - my2) + SSIM_C2)
     lum = (2 * mxy + SSIM_C1) / (mx2 + my2 + SSIM_C1)
     return (lum * cs).mean()
+
+
+def _blur_conv(z: Tensor, win: int) -> Tensor:
+    """[1, C, H, W] -> the valid Gaussian blur by grouped convolutions (off the CPU)."""
+    c = z.shape[1]
+    g = _window(win).to(z).repeat(c, 1)  # [C, win]
+    z = F.conv2d(z, g.reshape(c, 1, 1, win), groups=c)
+    return F.conv2d(z, g.reshape(c, 1, win, 1), groups=c)
+
+
+def _valid_blur(planes: np.ndarray, win: int) -> np.ndarray:
+    """[C, H, W] -> [C, H - win + 1, W - win + 1]: the Gaussian window's valid
+    correlation, plane by plane (each output pixel's sum is the same at any
+    OpenCV thread count)."""
+    import cv2
+
+    g = _window(win).numpy().astype(planes.dtype)
+    r = win // 2
+    return np.stack(
+        [
+            cv2.sepFilter2D(p, -1, g, g, borderType=cv2.BORDER_CONSTANT)[r:-r, r:-r]
+            for p in planes
+        ]
+    )
+
+
+class _Blur(torch.autograd.Function):
+    """The valid Gaussian blur of [C, H, W] planes and its exact backward: the
+    window is symmetric, so the gradient is the same blur of the gradient padded
+    by win - 1 zeros on every side."""
+
+    @staticmethod
+    def forward(ctx, planes: Tensor, win: int) -> Tensor:  # noqa: D102
+        ctx.win = win
+        out = _valid_blur(np.ascontiguousarray(planes.detach().numpy()), win)
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:  # noqa: D102
+        pad = ctx.win - 1
+        padded = np.pad(grad.detach().numpy(), ((0, 0), (pad, pad), (pad, pad)))
+        return torch.from_numpy(_valid_blur(padded, ctx.win)), None
 
 
 def psnr(a: np.ndarray | Tensor, b: np.ndarray | Tensor, mask=None) -> float:
