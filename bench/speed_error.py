@@ -50,26 +50,23 @@ CHAIN_RECIPES = {
     "langsplat-wild": "photo alone (in-the-wild geometry)",
     "langsplat": "LangSplat's recipe (plain 3DGS, photo alone)",
 }
-# each recipe names its wild and sky_stride: a scene run without --config adopts the
-# settings of its last run, so a key left out would be inherited from the recipe before
+# each recipe sets every key below: a scene run without --config adopts the settings
+# of its last run, so a key left out would be inherited from the recipe before
+_RECON_BASE = {"wild": "true", "sky_stride": "0", "seed": "0"}
+_RECON_KEYS = {
+    "wild": {},
+    "plain": {"wild": "false"},
+    "colour": {"wild": '"colour"'},
+    "auto": {"wild": '"auto"', "stop": '"plateau"'},
+    "wild-10k": {"max_gaussians": "10000"},
+    "wild-5k": {"max_gaussians": "5000"},
+    "wild-sky4": {"sky_stride": "4"},
+    "wild-sky2": {"sky_stride": "2"},
+    "wild-seed1": {"seed": "1"},
+}
 RECON_RECIPES = {
-    "wild": ["reconstruct.wild=true", "reconstruct.sky_stride=0"],
-    "plain": ["reconstruct.wild=false", "reconstruct.sky_stride=0"],
-    "colour": ['reconstruct.wild="colour"', "reconstruct.sky_stride=0"],
-    "auto": [
-        'reconstruct.wild="auto"',
-        'reconstruct.stop="plateau"',
-        "reconstruct.sky_stride=0",
-    ],  # fmt: skip
-    "wild-10k": ["reconstruct.wild=true", "reconstruct.max_gaussians=10000"],
-    "wild-5k": ["reconstruct.wild=true", "reconstruct.max_gaussians=5000"],
-    "wild-sky4": ["reconstruct.wild=true", "reconstruct.sky_stride=4"],
-    "wild-sky2": ["reconstruct.wild=true", "reconstruct.sky_stride=2"],
-    "wild-seed1": [
-        "reconstruct.wild=true",
-        "reconstruct.sky_stride=0",
-        "reconstruct.seed=1",
-    ],
+    name: [f"reconstruct.{k}={v}" for k, v in {**_RECON_BASE, **keys}.items()]
+    for name, keys in _RECON_KEYS.items()
 }
 REAL_SETS = ("herzjesu_p8", "fountain_p11")
 BUDGETS = ("wild-10k", "wild-5k")

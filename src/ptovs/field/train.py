@@ -121,7 +121,7 @@ def _new_state(
             color_map=cfg.color_map,
             stats=cfg.image_stats,
             learned=cfg.wild != "colour",
-            sky_stride=getattr(cfg, "sky_stride", 0),
+            sky_stride=cfg.sky_stride,
         )
     model = GaussianModel.from_points(
         points[0],
