@@ -52,7 +52,8 @@ CHAIN_RECIPES = {
 }
 # each recipe sets every key below: a scene run without --config adopts the settings
 # of its last run, so a key left out would be inherited from the recipe before
-_RECON_BASE = {"wild": "true", "sky_stride": "0", "seed": "0"}
+_RECON_BASE = {"wild": "true", "sky_stride": "0", "seed": "0", "stop": '"fixed"',
+               "max_gaussians": "25000"}  # fmt: skip
 _RECON_KEYS = {
     "wild": {},
     "plain": {"wild": "false"},
