@@ -417,6 +417,20 @@ def test_uncertainty_matches_dense_float64_reference():
     assert not np.allclose(ua_code[ok_a], ua[ok_a])
 
 
+@pytest.mark.parametrize("span", [5, 40_000])  # lookup table; past it, the sort
+def test_tuple_ids_partition_as_numpy_unique(span):
+    rng = np.random.default_rng(1)
+    rows = rng.integers(0, span, size=(3_000, 4))
+    rows[1000:2000] = rows[:1000]  # repeated tuples
+    first, inv = unc.tuple_ids(rows)
+    uniq, ref_inv = np.unique(rows, axis=0, return_inverse=True)
+    assert np.array_equal(rows[first], uniq)  # lexicographic, as numpy's
+    assert np.array_equal(inv, ref_inv.ravel())
+    assert np.array_equal(rows[first][inv], rows)
+    f0, i0 = unc.tuple_ids(np.zeros((0, 3), np.int64))
+    assert f0.size == 0 and i0.size == 0
+
+
 def test_uncertainty_hard_cases_are_finite():
     h, w = 4, 3
     const = Level(np.zeros((h, w), np.int32))
