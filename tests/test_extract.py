@@ -11,7 +11,13 @@ from click.testing import CliRunner
 from conftest import RECON, copy_work
 from ptovs.artifacts import Artifact, read_json_dataset
 from ptovs.cli import main
-from ptovs.features import SegmentFeatures, read_langsplat, view_apps, write_langsplat
+from ptovs.features import (
+    SegmentFeatures,
+    read_langsplat,
+    tuple_ids,
+    view_apps,
+    write_langsplat,
+)
 from ptovs.field.appearance import (
     QUALITY_METRICS,
     pairwise_l1,
@@ -422,12 +428,12 @@ def test_tuple_ids_partition_as_numpy_unique(span):
     rng = np.random.default_rng(1)
     rows = rng.integers(0, span, size=(3_000, 4))
     rows[1000:2000] = rows[:1000]  # repeated tuples
-    first, inv = unc.tuple_ids(rows)
+    first, inv = tuple_ids(rows)
     uniq, ref_inv = np.unique(rows, axis=0, return_inverse=True)
     assert np.array_equal(rows[first], uniq)  # lexicographic, as numpy's
     assert np.array_equal(inv, ref_inv.ravel())
     assert np.array_equal(rows[first][inv], rows)
-    f0, i0 = unc.tuple_ids(np.zeros((0, 3), np.int64))
+    f0, i0 = tuple_ids(np.zeros((0, 3), np.int64))
     assert f0.size == 0 and i0.size == 0
 
 

@@ -541,15 +541,33 @@ def test_lift_matches_float64_reference():
     assert torch.isfinite(got).all()
 
 
-def test_feature_lift_sums_match_a_dense_reference():
-    """Σ_x W[x, k] m[x, ℓ, a] F_a[seg_a[ℓ, x]] per Gaussian, against dense float64."""
+@pytest.mark.parametrize("variant", ["paper", "code"])  # one weight a pixel, or two
+def test_feature_lift_sums_match_a_dense_reference(variant, monkeypatch):
+    """Σ_x W[x, k] m[x, ℓ, a] F_a[seg_a[ℓ, x]] per Gaussian, against dense float64:
+    by pixel tuples where a pixel's segments share one weight (the paper's loss),
+    by the direct product where they do not (the code's)."""
+    import ptovs.field.lift as lift
+
     g, cam, bw, segs, _, _, _ = _toy_view(n=50, seed=6)
     rng = np.random.default_rng(6)
     feats = [rng.normal(size=(10, 8)).astype(np.float32) for _ in segs]
     u_t = rng.random((18, 24)).astype(np.float32)
+    u_a = rng.random((18, 24)).astype(np.float32)
     valid = np.stack([s.reshape(len(s), -1).T >= 0 for s in segs], axis=-1)
-    m = lang.mask_weights(valid, u_t, None)
+    m = lang.mask_weights(valid, u_t, u_a, variant)
+    paths = []
+    for name in ("_by_tuples", "_by_product"):
+        orig = getattr(lift, name)
+
+        def spy(*a, _orig=orig, _name=name):
+            got = _orig(*a)
+            if got is not None:
+                paths.append(_name)
+            return got
+
+        monkeypatch.setattr(lift, name, spy)
     got = feature_lift_sums(bw.csr()[1], segs, feats, m)
+    assert paths == (["_by_tuples"] if variant == "paper" else ["_by_product"])
     wmat = bw.W.to_dense().double()  # [HW, P]
     for a, (seg, f) in enumerate(zip(segs, feats, strict=True)):
         for lv in range(seg.shape[0]):

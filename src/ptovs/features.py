@@ -133,6 +133,38 @@ class SegmentFeatures:
             ) from None
 
 
+def _densify(code: np.ndarray, bound: int) -> tuple[np.ndarray, int]:
+    """Codes in [0, bound) renumbered 0..n−1 in increasing order: a lookup table
+    (linear in pixels) while `bound` is small, a sort past that."""
+    if bound <= max(4 * len(code), 1 << 16):
+        seen = np.zeros(bound, bool)
+        seen[code] = True
+        remap = np.cumsum(seen, dtype=np.int64) - 1
+        return remap[code], int(remap[-1]) + 1 if bound else 0
+    uniq, inv = np.unique(code, return_inverse=True)
+    return inv.ravel().astype(np.int64), len(uniq)
+
+
+def tuple_ids(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unique rows of a non-negative int id matrix [P, M]: (an index of each, inverse [P]).
+
+    Folds one column at a time into a dense code (code·(max+1) + column, then
+    renumbered 0..n−1), so codes never overflow int64, and renumbers through a
+    lookup table rather than a sort while the codes are few (a view's segment
+    tuples are: thousands among 10⁵–10⁶ pixels), ~10× faster than np.unique.
+    The unique rows come in lexicographic order, as np.unique(axis=0) gives them.
+    """
+    code = np.zeros(len(rows), np.int64)
+    n = 1
+    for j in range(rows.shape[1]):
+        col = rows[:, j].astype(np.int64)
+        span = int(col.max(initial=0)) + 1
+        code, n = _densify(code * span + col, n * span)
+    first = np.empty(n, np.int64)
+    first[code] = np.arange(len(code))  # any index of a code will do: equal rows
+    return first, code
+
+
 def view_apps(view: dict[str, np.ndarray]) -> list[str]:
     """Appearance slots stored in an extract-features view ("orig" first)."""
     apps = sorted(k[4:] for k in view if k.startswith("seg_"))

@@ -11,6 +11,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ptovs.features import tuple_ids
+
 
 @torch.no_grad()
 def feature_lift_sums(
@@ -23,11 +25,12 @@ def feature_lift_sums(
     """Adds one view's Σ_x W[x, k] m[x, ℓ, a] F_a[seg_a[ℓ, x]] for every Gaussian k
     to `out` ([P, L, A, D] float32, zeros if None) and returns it.
 
-    Two sparse products and no per-pixel D-vector: Wᵀ [P, HW] times S [HW, K], the
+    Sparse products and no per-pixel D-vector: Wᵀ [P, HW] times S [HW, K], the
     mask-weighted pixel-to-segment map of every (level, slot) at once (segments
     numbered across slots; a slot's rows are already distinct across levels), gives
-    the (Gaussian, segment) weights; those, rows ordered as `out`'s (Gaussian,
-    level, slot), multiply the stacked segment tables, added into `out` in place.
+    the (Gaussian, segment) weights (through the pixels' segment tuples where the
+    weights allow, `_by_tuples`); those, rows ordered as `out`'s (Gaussian, level,
+    slot), multiply the stacked segment tables, added into `out` in place.
     """
     indptr, pix, val = wt_csr
     n = len(indptr) - 1
@@ -52,20 +55,10 @@ def feature_lift_sums(
             level_of[c[c >= 0] + offset[a]] = lv
             cols[:, a * n_lv + lv] = np.maximum(c, 0) + offset[a]
             wts[:, a * n_lv + lv] = np.where(c >= 0, m[:, lv, a], 0.0)
-    keep = wts > 0
-    s_ptr = np.zeros(hw + 1, np.int64)
-    s_ptr[1:] = np.cumsum(keep.sum(1))
-    s_mat = torch.sparse_csr_tensor(
-        torch.from_numpy(s_ptr), torch.from_numpy(cols[keep]),
-        torch.from_numpy(wts[keep]), size=(hw, n_cols), check_invariants=True,
-    )  # fmt: skip
-    w_mat = torch.sparse_csr_tensor(
-        indptr.long(), pix.long(), val.float(), size=(n, hw), check_invariants=True
-    )
-    # [P, K] (Gaussian, segment) weights. In COO, not CSR: torch's CPU product of two
-    # sparse CSR tensors keeps ~16 MB a call at 153k Gaussians (torch 2.13; measured,
-    # docs/findings.md), which killed a 2,934-photo lift at 23.7 GB.
-    gs = torch.sparse.mm(w_mat.to_sparse_coo(), s_mat.to_sparse_coo()).coalesce()
+    w_rows = np.repeat(np.arange(n), np.diff(indptr.numpy()))  # Wᵀ's row of each entry
+    gs = _by_tuples(w_rows, pix.numpy(), val.float().numpy(), cols, wts, n, n_cols)
+    if gs is None:  # the weights differ between a pixel's segments: the general path
+        gs = _by_product(indptr, pix, val, cols, wts, n, n_cols)
     g_of, c_of = gs.indices().numpy()  # coalesced: row-major, distinct pairs
     vals = gs.values().numpy()
     row = (g_of * n_lv + level_of[c_of]) * n_app + slot_of[c_of]
@@ -79,3 +72,60 @@ def feature_lift_sums(
     )  # fmt: skip
     out.view(-1, dim).addmm_(a_mat, table)  # accumulates in place
     return out
+
+
+def _coo(rows: np.ndarray, cols: np.ndarray, vals: np.ndarray, size) -> Tensor:
+    """A sparse COO tensor of the given entries (duplicates summed on coalesce)."""
+    idx = torch.from_numpy(np.stack((rows, cols)).astype(np.int64))
+    return torch.sparse_coo_tensor(
+        idx, torch.from_numpy(vals), size=size, check_invariants=True
+    )
+
+
+def _by_product(indptr, pix, val, cols, wts, n, n_cols) -> Tensor:
+    """(Gaussian, segment) weights [P, K], coalesced: Wᵀ [P, HW] times S [HW, K], the
+    mask-weighted pixel-to-segment map, as one sparse product (L·A entries a pixel).
+    In COO, not CSR: torch's CPU product of two sparse CSR tensors keeps ~16 MB a call
+    at 153k Gaussians (torch 2.13; measured, docs/findings.md), which killed a
+    2,934-photo lift at 23.7 GB."""
+    hw = len(cols)
+    keep = wts > 0
+    s_ptr = np.zeros(hw + 1, np.int64)
+    s_ptr[1:] = np.cumsum(keep.sum(1))
+    s_mat = torch.sparse_csr_tensor(
+        torch.from_numpy(s_ptr), torch.from_numpy(cols[keep]),
+        torch.from_numpy(wts[keep]), size=(hw, n_cols), check_invariants=True,
+    )  # fmt: skip
+    w_mat = torch.sparse_csr_tensor(
+        indptr.long(), pix.long(), val.float(), size=(n, hw), check_invariants=True
+    )
+    return torch.sparse.mm(w_mat.to_sparse_coo(), s_mat.to_sparse_coo()).coalesce()
+
+
+def _by_tuples(w_rows, pix, val, cols, wts, n, n_cols) -> Tensor | None:
+    """The same product when each pixel's weight is one number q(x) for all its
+    segments (the paper's loss: (1 − U_A)(1 − U_T)); None otherwise.
+
+    Pixels are grouped by their tuple of segments (a view has thousands among 10⁵–10⁶
+    pixels): Wᵀ's entries, scaled by q and relabelled by tuple, are summed per
+    (Gaussian, tuple), first along runs (a Gaussian's pixels come in image order, so
+    neighbours mostly share a tuple) and then exactly; that small [P, U] matrix times
+    the tuples' [U, K] segment map is the product, with L·A times fewer terms than
+    multiplying Wᵀ by S directly."""
+    q = wts.max(1)
+    if not np.array_equal(wts, np.where(wts > 0, q[:, None], 0.0)):
+        return None
+    key = np.where(wts > 0, cols + 1, 0)  # 0: no segment there
+    first, tup = tuple_ids(key)
+    u = tup[pix]
+    v = val * q[pix]
+    run = np.ones(len(u), bool)
+    run[1:] = (u[1:] != u[:-1]) | (w_rows[1:] != w_rows[:-1])
+    at = np.flatnonzero(run)
+    h_mat = _coo(w_rows[at], u[at], np.add.reduceat(v, at).astype(np.float32),
+                 (n, len(first))).coalesce()  # fmt: skip
+    t_key = key[first]  # [U, L·A]: each tuple's segments
+    t_row, t_j = np.nonzero(t_key)
+    t_mat = _coo(t_row, t_key[t_row, t_j] - 1, np.ones(len(t_row), np.float32),
+                 (len(first), n_cols)).coalesce()  # fmt: skip
+    return torch.sparse.mm(h_mat, t_mat).coalesce()
