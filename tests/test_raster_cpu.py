@@ -900,6 +900,33 @@ def test_an_avx2_build_renders_what_the_native_one_does(tmp_path):
     np.testing.assert_allclose(np.load(out), ours, rtol=0, atol=1e-5)
 
 
+def test_nondeterministic_leaves_torch_its_threads(tmp_path):
+    """`--nondeterministic`: inside the context torch keeps every thread (the team as
+    before); the setting is recorded in provenance; the default is restored by the
+    next command."""
+    from click.testing import CliRunner
+
+    from ptovs.artifacts import provenance
+    from ptovs.cli import main
+
+    before = torch.get_num_threads()
+    try:
+        r = CliRunner().invoke(main, ["--work-dir", str(tmp_path), "--threads", "3",
+                                      "synth-scene", "--nondeterministic", "--help"])  # fmt: skip
+        assert r.exit_code == 0, r.output
+        assert not _cpu.deterministic() and provenance()["deterministic"] == "False"
+        with _cpu.kernels_only_parallel():
+            assert (torch.get_num_threads(), _cpu.threads()) == (3, 3)
+        r = CliRunner().invoke(
+            main, ["--work-dir", str(tmp_path), "synth-scene", "--help"]
+        )
+        assert r.exit_code == 0, r.output
+        assert _cpu.deterministic() and provenance()["deterministic"] == "True"
+    finally:
+        _cpu.set_deterministic(True)
+        torch.set_num_threads(before)
+
+
 def test_kernels_only_parallel_keeps_the_team_and_restores():
     """Inside, torch runs on one thread and the kernels on the count it was entered
     with; afterwards (also after an error) both are as before."""

@@ -167,8 +167,11 @@ def git_sha() -> str:
 
 
 def provenance() -> dict[str, str]:
-    """Library versions and code identity recorded in every artifact."""
+    """Library versions, code identity and the threads (count and whether training
+    ran torch on one of them, `ptovs --deterministic`) recorded in every artifact."""
     import torch  # imported here: only writers pay for it
+
+    from ptovs.raster import deterministic as _deterministic
 
     return dict(
         format=FORMAT,
@@ -177,6 +180,8 @@ def provenance() -> dict[str, str]:
         torch_version=str(torch.__version__),
         numpy_version=np.__version__,
         h5py_version=h5py.__version__,
+        threads=str(torch.get_num_threads()),
+        deterministic=str(_deterministic()),
         created_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     )
 

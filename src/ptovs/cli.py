@@ -38,12 +38,13 @@ _openmp_defaults()
 
 # the group's options that take a value (to find where the subcommand starts)
 _GROUP_VALUED = ("--work-dir", "--config", "--set", "--threads")
+_GROUP_FLAGS = ("--verbose", "--quiet", "--deterministic", "--nondeterministic")
 
 
 def hoist_global_flags(args: list[str]) -> list[str]:
-    """-v/-q/--threads N given after the subcommand, moved before it, so that they
-    work on either side (no subcommand has options of those names). Tokens after
-    `--` stay where they are."""
+    """-v/-q/--threads N/--(non)deterministic given after the subcommand, moved
+    before it, so that they work on either side (no subcommand has options of those
+    names). Tokens after `--` stay where they are."""
     args = list(args)
     i = 0
     while i < len(args) and args[i].startswith("-") and args[i] != "--":
@@ -57,7 +58,7 @@ def hoist_global_flags(args: list[str]) -> list[str]:
         if tok == "--":
             kept += rest[j:]
             break
-        if tok in ("--verbose", "--quiet") or re.fullmatch(r"-(v+|q+)", tok):
+        if tok in _GROUP_FLAGS or re.fullmatch(r"-(v+|q+)", tok):
             moved.append(tok)
         elif tok == "--threads" and j + 1 < len(rest):
             moved += [tok, rest[j + 1]]
@@ -213,10 +214,22 @@ def _setup_logging(verbose: int, quiet: int) -> None:
     envvar="PTOVS_THREADS",
     default=None,
     help="CPU threads for torch and the rasterizer (default: torch's, one per core; "
-    "$PTOVS_THREADS). Results are reproducible bit for bit per thread count. Idle "
+    "$PTOVS_THREADS). The same bits at any count (see --deterministic). Idle "
     "threads spin briefly, then sleep (GOMP_SPINCOUNT=3000 unless it or "
     "OMP_WAIT_POLICY is set), so the default degrades gracefully beside other "
     "work (docs/findings.md).",
+)
+@click.option(
+    "--deterministic/--nondeterministic",
+    envvar="PTOVS_DETERMINISTIC",
+    default=True,
+    show_default=True,
+    help="Training (reconstruct, render-appearances, train-male) runs torch's own "
+    "operations on one thread and only the compiled rasterizer on all --threads, so "
+    "a field is the same bit for bit at any thread count. --nondeterministic gives "
+    "torch every thread too: reconstruct 2.7x faster at 16 threads, 1.3-1.45x at 2 "
+    '(docs/results.md, "Threads"), the field then reproducible per thread count '
+    "only. Recorded in every artifact's provenance.",
 )
 @click.option("-v", "--verbose", count=True, help="More log output (-vv for debug).")
 @click.option("-q", "--quiet", count=True, help="Less log output.")
@@ -228,6 +241,7 @@ def main(
     sets: tuple[str, ...],
     force: bool,
     threads: int | None,
+    deterministic: bool,
     verbose: int,
     quiet: int,
 ) -> None:
@@ -246,13 +260,16 @@ def main(
     command writes one file (export-ply, select, roam, table), else a folder
     (query, evaluate, style, export-features, view). A folder where a file is
     asked for, or a file name where a folder is, is refused before any work.
-    -v/-q/--threads work before or after the subcommand.
+    -v/-q/--threads/--(non)deterministic work before or after the subcommand.
     """
     _setup_logging(verbose, quiet)
     if threads is not None:
         import torch
 
         torch.set_num_threads(threads)
+    from ptovs.raster import set_deterministic
+
+    set_deterministic(deterministic)
     from ptovs.keys import flush_fingerprints, forget_checked_writes
     from ptovs.scene_config import GivenConfig
 

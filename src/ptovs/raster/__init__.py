@@ -30,7 +30,7 @@ from __future__ import annotations
 from ptovs.raster._backends import available_backends
 from ptovs.raster._blend import BlendWeights, blend_weights, csr_matmul
 from ptovs.raster._common import Camera, Gaussians
-from ptovs.raster._cpu import kernels_only_parallel
+from ptovs.raster._cpu import deterministic, kernels_only_parallel, set_deterministic
 from ptovs.raster._render import RenderOutput, render
 from ptovs.raster._sh import SH_C0, eval_sh
 
@@ -44,9 +44,11 @@ __all__ = [
     "available_backends",
     "blend_weights",
     "csr_matmul",
+    "deterministic",
     "eval_sh",
     "kernels_only_parallel",
     "render",
+    "set_deterministic",
 ]
 
 VERSION = 2  # bump when rendered values change (constants, rules, conventions)
