@@ -227,7 +227,7 @@ def _setup_logging(verbose: int, quiet: int) -> None:
     help="Training (reconstruct, render-appearances, train-male) runs torch's own "
     "operations on one thread and only the compiled rasterizer on all --threads, so "
     "a field is the same bit for bit at any thread count. --nondeterministic gives "
-    "torch every thread too: reconstruct 2.7x faster at 16 threads, 1.3-1.45x at 2 "
+    "torch every thread too: reconstruct 2.7x faster at 16 threads, 1.26-1.45x at 2 "
     '(docs/results.md, "Threads"), the field then reproducible per thread count '
     "only. Recorded in every artifact's provenance.",
 )
