@@ -55,8 +55,7 @@ def feature_lift_sums(
             level_of[c[c >= 0] + offset[a]] = lv
             cols[:, a * n_lv + lv] = np.maximum(c, 0) + offset[a]
             wts[:, a * n_lv + lv] = np.where(c >= 0, m[:, lv, a], 0.0)
-    w_rows = np.repeat(np.arange(n), np.diff(indptr.numpy()))  # Wᵀ's row of each entry
-    gs = _by_tuples(w_rows, pix.numpy(), val.float().numpy(), cols, wts, n, n_cols)
+    gs = _by_tuples(indptr, pix, val, cols, wts, n, n_cols)
     if gs is None:  # the weights differ between a pixel's segments: the general path
         gs = _by_product(indptr, pix, val, cols, wts, n, n_cols)
     g_of, c_of = gs.indices().numpy()  # coalesced: row-major, distinct pairs
@@ -102,7 +101,7 @@ def _by_product(indptr, pix, val, cols, wts, n, n_cols) -> Tensor:
     return torch.sparse.mm(w_mat.to_sparse_coo(), s_mat.to_sparse_coo()).coalesce()
 
 
-def _by_tuples(w_rows, pix, val, cols, wts, n, n_cols) -> Tensor | None:
+def _by_tuples(indptr, pix, val, cols, wts, n, n_cols) -> Tensor | None:
     """The same product when each pixel's weight is one number q(x) for all its
     segments (the paper's loss: (1 − U_A)(1 − U_T)); None otherwise.
 
@@ -115,6 +114,8 @@ def _by_tuples(w_rows, pix, val, cols, wts, n, n_cols) -> Tensor | None:
     q = wts.max(1)
     if not np.array_equal(wts, np.where(wts > 0, q[:, None], 0.0)):
         return None
+    w_rows = np.repeat(np.arange(n), np.diff(indptr.numpy()))  # Wᵀ's row of each entry
+    pix, val = pix.numpy(), val.float().numpy()
     key = np.where(wts > 0, cols + 1, 0)  # 0: no segment there
     first, tup = tuple_ids(key)
     u = tup[pix]
