@@ -38,3 +38,17 @@ def test_the_fitted_reconstruct_is_read_against_both_fixed_ones(se, tmp_path):
     # each is faster or better than the others: all three on the front
     assert all(out[("a", k)]["on_front"] for k in ("plain", "auto", "wild"))
     assert "vs_best_db" not in out[("b", "auto")]  # no PSNR, no pair: nothing read
+
+
+def test_a_csv_reads_back_as_written(se, tmp_path):
+    """One front re-run keeps the other's recorded rows: they read back as numbers."""
+    rows = [
+        {"recipe": "male", "chain_s": 263.3, "on_front": False, "seeds_kind": "test"},
+        {"recipe": "auto", "chain_s": 244.7, "on_front": True, "seeds_kind": "dev",
+         "delta": -0.01},
+    ]  # fmt: skip
+    path = tmp_path / "c.csv"
+    se.write_csv(path, rows)
+    back = se.read_csv(path)
+    assert back[0] == rows[0]  # the missing delta stays missing, not ""
+    assert back[1]["delta"] == -0.01 and back[1]["on_front"] is True
