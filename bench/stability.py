@@ -1,32 +1,37 @@
-"""Stability: the answers a user reads, where only the rounding of floats differs.
+"""Stability: the answers a user reads when the input moves by what no user would notice.
 
     make bench-stability                               # the demo, then the dev seeds
     python bench/stability.py --part demo              # the demo scene alone
     python bench/stability.py --part dev --seeds 0-8   # the accuracy instrument's dev seeds
     python bench/stability.py --report-only            # tables from the results file
 
-Perturbations (the same photos and config; only how floats round differs):
+Perturbations (the headline four run by default; the rest on request):
 
-  t1, t2, t3   --threads 1 / 2 / 3 (ptovs gives the same bits at every count: the
-               demo runs all three to show it)
-  avx2         2 threads, every kernel held to AVX2 as on a CPU without AVX-512: ATen
-               (ATEN_CPU_CAPABILITY=avx2), oneDNN (ONEDNN_MAX_CPU_ISA=AVX2), MKL
-               (MKL_CBWR=AVX2) and the compiled rasterizer (PTOVS_MARCH=x86-64-v3)
+  t2           the reference: 2 threads, the photos as written, native float paths
+  jpeg95       the same photos re-saved as JPEG quality 95 (a copy of the scene)
+  floats       torch's float paths moved: ATen's portable kernels
+               (ATEN_CPU_CAPABILITY=default), MKL's compatible path (MKL_CBWR=COMPATIBLE),
+               oneDNN held to SSE4.1 (ONEDNN_MAX_CPU_ISA=SSE41), the compiled
+               rasterizer built for x86-64-v2 (PTOVS_MARCH)
+  seed1        the chain's own seeds changed: reconstruct's and the target draw's
+  t1, t3       --threads 1 / 3 (ptovs gives the same bits at every count)
+  avx2         2 threads, every kernel held to AVX2 as on a CPU without AVX-512
   avx2-t1      the same on 1 thread
   torch        2 threads, the pure-PyTorch rasterizer in every stage that renders
                (demo only: several times slower)
 
 Each perturbation runs the whole chain in a work folder of its own (artifacts are keyed
 by data and config, not by rounding, so a shared folder would hand one run's answers
-to the next), then reads what a user reads: held-out PSNR (as is, NeRF-W), the
-Gaussians, per (view, query) the chosen level, the peak score and the mask's area,
-mIoU / mPA / mP, `select TEXT`'s count, level and score, and the style vote.
+to the next), then reads what a user reads, stage by stage: held-out PSNR (as is,
+NeRF-W), the Gaussians, the novel targets render-appearances chose, per (view, query)
+the chosen level, the peak score and the mask's area, mIoU / mPA / mP, `select TEXT`'s count, level and score, and the style vote.
 
 The report gives each answer's spread over the perturbations: the range of a number,
-max / min of a count, the share of runs that agree with the most common choice. On
-the dev seeds: each seed's mIoU range, their mean, and beside it the seed-to-seed
-spread of mIoU (the standard deviation over seeds), which is what a single scene's
-figure is already subject to.
+max / min of a count, the share of runs that agree with the most common choice, and
+the first stage whose output moves by more than its input did. On the dev seeds: each
+seed's mIoU range, their mean, and beside it the seed-to-seed spread of mIoU (the
+standard deviation over seeds), which is what a single scene's figure is already
+subject to.
 """
 
 from __future__ import annotations
@@ -53,14 +58,27 @@ AVX2_ENV = {
     "PTOVS_MARCH": "x86-64-v3",
 }
 RENDERING_STAGES = ("reconstruct", "render-appearances", "train-male", "query")
+FLOAT_PATH_ENV = {
+    "ATEN_CPU_CAPABILITY": "default",
+    "MKL_CBWR": "COMPATIBLE",
+    "ONEDNN_MAX_CPU_ISA": "SSE41",
+    "PTOVS_MARCH": "x86-64-v2",
+}
 PERTURBATIONS: dict[str, dict] = {
-    "t1": {"threads": 1},
     "t2": {"threads": 2},
+    "jpeg95": {"threads": 2, "photos": 95},
+    "floats": {"threads": 2, "env": FLOAT_PATH_ENV},
+    "seed1": {
+        "threads": 2,
+        "sets": ["reconstruct.seed=1", "render-appearances.seed=1"],
+    },
+    "t1": {"threads": 1},
     "t3": {"threads": 3},
     "avx2": {"threads": 2, "env": AVX2_ENV},
     "avx2-t1": {"threads": 1, "env": AVX2_ENV},
     "torch": {"threads": 2, "sets": [f"{s}.backend=torch" for s in RENDERING_STAGES]},
 }
+HEADLINE = ("t2", "jpeg95", "floats", "seed1")
 DEMO_TEXT = "Minaret"  # make demo's DEMO_TEXT
 DEMO_CONFIG = str(ROOT / "configs" / "demo.toml")  # and its DEMO_CONFIG
 
@@ -89,6 +107,10 @@ def answers(work: Path, scene: Path, text: str | None, style: bool) -> dict:
     out["psnr_test"] = m.get("psnr_test")
     out["psnr_test_nerfw"] = m.get("psnr_test_nerfw")
     out["gaussians"] = m.get("gaussians")
+    for path in sorted((work / name / "render-appearances").glob("*.h5"))[:1]:
+        with Artifact(path) as a:
+            sel = read_json_dataset(a.root()["selection_json"])
+        out["targets"] = sorted(t for t in sel.get("targets", []) if t)
     (ev,) = sorted((work / name / "evaluate").glob("*.h5"))
     with Artifact(ev) as a:
         summary, pairs = read_metrics(a)
@@ -124,10 +146,14 @@ def run_scene(
     text: str | None,
     style: bool,
     config: str | None,
+    extra: tuple[str, ...] = (),
 ) -> dict:
-    """The whole chain on `scene` under perturbation `label`, then its answers."""
+    """The whole chain on `scene` under perturbation `label` (and the `--set`s
+    `extra`), then its answers."""
     p = PERTURBATIONS[label]
-    env, sets, threads = p.get("env", {}), p.get("sets", []), p["threads"]
+    env, sets, threads = p.get("env", {}), [*p.get("sets", []), *extra], p["threads"]
+    if p.get("photos"):
+        scene = resaved(scene, work.parent / f"photos-q{p['photos']}", p["photos"])
     cfg = ["--config", config] if config else []
     t0 = time.perf_counter()
     _ptovs(work, threads, env, sets, *cfg, "evaluate", "--data", str(scene))
@@ -140,6 +166,57 @@ def run_scene(
     res = answers(work, scene, text, style)
     res["seconds"] = round(time.perf_counter() - t0, 1)
     return res
+
+
+def resaved(scene: Path, root: Path, quality: int) -> Path:
+    """A copy of `scene` under `root` (same name; its labels folder beside it, as
+    `synth-scene` writes them) with every photo in dense/images decoded and
+    written again as JPEG of `quality`: pixels a viewer cannot tell apart,
+    different bytes and a few rounding steps of difference."""
+    import shutil
+
+    import cv2
+
+    dst = root / scene.name
+    done = dst / ".resaved"
+    if done.is_file():
+        return dst
+    if dst.exists():
+        shutil.rmtree(dst)
+    shutil.copytree(scene, dst)
+    labels = scene.parent / "label" / scene.name  # the labels beside the scene
+    if labels.is_dir() and not (root / "label" / scene.name).exists():
+        shutil.copytree(labels, root / "label" / scene.name)
+    for img in sorted((dst / "dense" / "images").iterdir()):
+        pixels = cv2.imread(str(img), cv2.IMREAD_UNCHANGED)
+        if pixels is None:
+            raise RuntimeError(f"{img}: not an image OpenCV can read")
+        if not cv2.imwrite(str(img.with_suffix(".tmp.jpg")), pixels,
+                           [cv2.IMWRITE_JPEG_QUALITY, quality]):  # fmt: skip
+            raise RuntimeError(f"{img}: could not write it again")
+        img.with_suffix(".tmp.jpg").replace(img)
+    done.write_text(str(quality))
+    return dst
+
+
+def seeded_work(base: Path, work: Path) -> Path:
+    """`work` for a run with other query settings: the base run's chain up to
+    train-male hard-linked in (artifacts are replaced, never written in place), so
+    only the query and what follows it run again. Files already there are kept."""
+    import os
+
+    answers_dirs = {"query", "evaluate", "query-out", "style-out"}
+    for src in sorted(base.rglob("*")) if base.is_dir() else []:
+        rel = src.relative_to(base)
+        if rel.parts[1:2] and rel.parts[1] in answers_dirs or "select" in src.name:
+            continue
+        dst = work / rel
+        if src.is_dir():
+            dst.mkdir(parents=True, exist_ok=True)
+        elif not dst.exists():
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            os.link(src, dst)
+    return work
 
 
 # ------------------------------------------------------------------ spreads --
@@ -169,6 +246,11 @@ def scene_spread(runs: dict[str, dict]) -> dict:
         "psnr_nerfw_range": spread_numbers([r["psnr_test_nerfw"] for r in rs]),
         "gaussians_ratio": ratio_counts([r["gaussians"] for r in rs]),
     }
+    if all("targets" in r for r in rs):
+        sets = [set(r["targets"]) for r in rs]
+        ref = sets[0]
+        out["targets_same"] = [s == ref for s in sets]
+        out["targets_shared"] = [len(s & ref) / max(len(ref), 1) for s in sets]
     keys = sorted(set.intersection(*(set(r["pairs"]) for r in rs)))
     if keys:
         lv = [agreement([r["pairs"][k]["level"] for r in rs]) for k in keys]
@@ -197,6 +279,14 @@ def scene_spread(runs: dict[str, dict]) -> dict:
 
 
 # -------------------------------------------------------------------- parts --
+def _work(args: argparse.Namespace, root: Path, label: str) -> Path:
+    """The perturbation's work folder; under `--set`s (`--name`) a folder of its
+    own that starts from the plain run's chain."""
+    if not args.set:
+        return root / label
+    return seeded_work(root / label, root / f"{label}+{args.name}")
+
+
 def part_demo(args: argparse.Namespace, res: Results) -> None:
     data = args.data / "demo"
     scene = data / "demo_s0"
@@ -208,8 +298,9 @@ def part_demo(args: argparse.Namespace, res: Results) -> None:
         if label in demo:
             continue
         print(f"demo {label} ...", flush=True)
-        demo[label] = run_scene(label, scene, args.work / "demo" / label,
-                                args.text, True, DEMO_CONFIG)  # fmt: skip
+        work = _work(args, args.work / "demo", label)
+        demo[label] = run_scene(label, scene, work, args.text, True, DEMO_CONFIG,
+                                tuple(args.set))  # fmt: skip
         res.save()
 
 
@@ -226,12 +317,34 @@ def part_dev(args: argparse.Namespace, res: Results) -> None:
             if label in runs:
                 continue
             print(f"dev seed {seed} {label} ...", flush=True)
-            runs[label] = run_scene(label, scene, args.work / "dev" / label,
-                                    None, False, config)  # fmt: skip
+            work = _work(args, args.work / "dev", label)
+            runs[label] = run_scene(label, scene, work, None, False, config,
+                                    tuple(args.set))  # fmt: skip
             res.save()
 
 
 # ------------------------------------------------------------------- report --
+def print_stages(s: dict) -> None:
+    """One scene's spreads in the chain's order: where a small change grows."""
+    print("\nStage by stage (spread over the runs):")
+    print(f"  reconstruct         held-out PSNR range {s['psnr_test_range']:.2f} dB, "
+          f"Gaussians max/min {s['gaussians_ratio']:.2f}")  # fmt: skip
+    if "targets_same" in s:
+        same = sum(s["targets_same"]) - 1
+        shared = np.mean(s["targets_shared"][1:]) if len(s["targets_shared"]) > 1 else 1
+        print(f"  render-appearances  targets equal to the reference in {same} of "
+              f"{len(s['targets_same']) - 1} runs; {shared:.0%} shared on average")  # fmt: skip
+    if "pairs" in s:
+        print(f"  query               level agreement {s['level_agreement']:.2f} "
+              f"({s['level_flips']} of {s['pairs']} pairs flip); peak score range "
+              f"{s['score_range_mean']:.3f}; mask area max/min (median) "
+              f"{s['area_ratio_median']:.2f}")  # fmt: skip
+    print(f"  evaluate            mIoU range {s['miou_range']:.3f}")
+    if "select_ratio" in s:
+        print(f"  select              count max/min {s['select_ratio']:.2f} "
+              f"({s['select']})")  # fmt: skip
+
+
 def report(res: Results) -> None:
     demo = res.get("demo", {})
     if len(demo) >= 2:
@@ -248,6 +361,7 @@ def report(res: Results) -> None:
                   f"{sel.get('selected')} of {sel.get('gaussians')} | {sel.get('level')} | "
                   f"{r.get('style', {}).get('winner')} | "
                   f"{r['psnr_test']:.2f} / {r['psnr_test_nerfw']:.2f} |")  # fmt: skip
+        print_stages(s)
         print(f"\nmIoU range {s['miou_range']:.3f}; select max/min {s.get('select_ratio', 0):.2f}; "
               f"level agreement {s.get('level_agreement', 1):.2f} ({s.get('level_flips')} "
               f"pairs flip); score range {s.get('score_range_mean', 0):.3f}; "
@@ -282,9 +396,9 @@ def main() -> None:
         "--part", choices=("demo", "dev"), nargs="*", default=["demo", "dev"]
     )
     ap.add_argument("--seeds", nargs="+", default=["0-8"], help="dev seeds")
-    ap.add_argument("--demo-perturbations", nargs="+", default=list(PERTURBATIONS),
+    ap.add_argument("--demo-perturbations", nargs="+", default=list(HEADLINE),
                     choices=list(PERTURBATIONS))  # fmt: skip
-    ap.add_argument("--dev-perturbations", nargs="+", default=["t2", "avx2"],
+    ap.add_argument("--dev-perturbations", nargs="+", default=list(HEADLINE),
                     choices=list(PERTURBATIONS))  # fmt: skip
     ap.add_argument("--text", default=DEMO_TEXT, help="the demo's select phrase")
     ap.add_argument("--data", type=Path, default=ROOT / "data" / "stability")
@@ -294,6 +408,15 @@ def main() -> None:
         "--out", type=Path, default=ROOT / "work" / "stability" / "stability.json"
     )
     ap.add_argument("--report-only", action="store_true")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="STAGE.KEY=VALUE",
+        help="a setting for every run (e.g. query.fusion=agree); give "
+        "--name and --out too: the runs start from the plain runs' chains",
+    )
+    ap.add_argument("--name", default="set", help="names the --set runs' work folders")
     ap.add_argument("--merge", type=Path, nargs="*", default=[],
                     help="results files of runs made apart (e.g. one per perturbation, "
                     "in parallel), merged into --out first")  # fmt: skip

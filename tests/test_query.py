@@ -93,6 +93,41 @@ def test_fusion_modes_on_a_hand_example():
         rel.fuse(a, "nope")
 
 
+def test_agreement_fusion_against_a_float64_reference():
+    """ "agree": the paper's peak weights, each novel map's times max(0, ρ) with
+    the photo's own map (slot 0); a map answering elsewhere gets no weight, a
+    constant one neither, and slot 0 keeps its own."""
+    g = torch.Generator().manual_seed(5)
+    s = torch.rand(3, 4, 6, 5, generator=g)
+    s[0, 2] = 1.0 - s[0, 0]  # answers where the photo does not: ρ = −1
+    s[1, 3] = 0.25  # constant: no correlation
+    ref = torch.zeros(3, 6, 5, dtype=torch.float64)
+    for lv in range(3):
+        x = s[lv].double().reshape(4, -1)
+        w = []
+        for i in range(4):
+            rho = np.corrcoef(x[i].numpy(), x[0].numpy())[0, 1] if x[i].std() > 0 else 0
+            w.append(float(x[i].max()) * (1.0 if i == 0 else max(0.0, rho)))
+        w = torch.tensor(w, dtype=torch.float64) / sum(w)
+        ref[lv] = (w[:, None, None] * s[lv].double()).sum(0)
+    out = rel.fuse(s, "agree")
+    assert out.dtype == s.dtype
+    torch.testing.assert_close(out.double(), ref, atol=1e-6, rtol=0)
+    # the anti-correlated map adds nothing: level 0 equals the fusion without it
+    keep = [0, 1, 3]
+    torch.testing.assert_close(
+        rel.fuse(s[:1, keep], "agree"), out[:1], atol=1e-6, rtol=0
+    )
+    # one bad slot cannot carry the map: a noisy high-peak slot counts little
+    noisy = s[:1].clone()
+    noisy[0, 1:] = torch.rand(3, 6, 5, generator=g) * 0.2
+    noisy[0, 1, 0, 0] = 5.0  # a single huge pixel
+    fused = rel.fuse(noisy, "agree")[0]
+    weighted = rel.fuse(noisy, "weighted")[0]
+    err = lambda m: float((m - noisy[0, 0]).abs().mean())  # noqa: E731
+    assert err(fused) < err(weighted)
+
+
 def test_background_filter_forms():
     # K phrases: 0 query, 1 sky, 2 background
     cos = torch.zeros(2, 3, 4, 5, 3)
@@ -112,6 +147,35 @@ def test_threshold_relative_rule_and_constant_map():
     assert m.tolist() == [[x > 0.7 + 1e-6 for x in np.linspace(0, 1, 11)]]
     assert not rel.threshold(np.full((4, 4), 0.3, np.float32)).any()
     assert rel.threshold(s, 0.4, "absolute").sum() == 7  # 0.4 .. 1.0
+
+
+def test_the_stable_cut_keeps_a_mask_where_a_fixed_cut_jumps():
+    """A part that stands out (steep sides) on a background whose level sits near
+    τ: the fixed relative cut takes in or drops the background with a tiny change
+    of the map; the stable cut stays on the part's plateau."""
+    yy, xx = np.mgrid[:64, :64]
+    part = ((yy - 32) ** 2 + (xx - 32) ** 2 < 100).astype(np.float64)
+    slope = 0.7 * xx / 63  # a gentle ramp up to just above the fixed cut
+    areas = {"relative": [], "stable": []}
+    for shift in (-0.01, 0.0, 0.01):
+        m = np.maximum(part, slope + shift) * 0.8
+        for mode in areas:
+            areas[mode].append(int(rel.threshold(m, 0.4, mode).sum()))
+    fixed, stable = np.ptp(areas["relative"]), np.ptp(areas["stable"])
+    assert stable * 5 < fixed, areas
+    assert min(areas["stable"]) >= part.sum() - 8  # the part, whole
+    # hard cases: constant, empty and huge maps
+    assert not rel.threshold(np.full((4, 4), 0.3), 0.4, "stable").any()
+    assert rel.threshold(np.zeros((0, 3)), 0.4, "stable").shape == (0, 3)
+    huge = np.where(part > 0, 1e30, -1e30)
+    torch.testing.assert_close(
+        torch.from_numpy(rel.threshold(huge, 0.4, "stable")), torch.from_numpy(part > 0)
+    )
+    assert rel.stable_cut(np.linspace(0, 1, 101), 0.4) == pytest.approx(
+        0.4
+    )  # even ramp
+    with pytest.raises(ValueError, match="stable"):
+        rel.threshold(part, 0.4, "otsu")
 
 
 def test_peak_of_is_the_maximum_or_a_quantile_and_hard_cases():
@@ -432,6 +496,7 @@ def test_query_every_ensemble_mode_and_filter_runs(queried):
     work, data, _ = queried
     for sets in (
         ["--set", "query.fusion=pixweighted", "--set", "query.background_filter=code"],
+        ["--set", "query.fusion=agree"],
         ["--set", "query.fusion=imglvlmax", "--set", "query.background_filter=off"],
         ["--set", "query.decode=exact", "--set", "query.threshold_mode=absolute"],
     ):

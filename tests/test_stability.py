@@ -59,14 +59,67 @@ def test_hard_cases_of_the_spreads(st):
     assert st.agreement([]) == 1.0
 
 
-def test_each_perturbation_changes_rounding_only(st):
+def test_each_perturbation_changes_what_it_names_only(st):
     p = st.PERTURBATIONS
+    assert st.HEADLINE == ("t2", "jpeg95", "floats", "seed1")
     assert [p[k]["threads"] for k in ("t1", "t2", "t3")] == [1, 2, 3]
     env = p["avx2"]["env"]
     assert env["ATEN_CPU_CAPABILITY"] == "avx2" and env["PTOVS_MARCH"] == "x86-64-v3"
+    moved = p["floats"]["env"]
+    assert (
+        moved["ATEN_CPU_CAPABILITY"] == "default" and moved["MKL_CBWR"] == "COMPATIBLE"
+    )
+    assert moved["ONEDNN_MAX_CPU_ISA"] == "SSE41"
+    assert p["jpeg95"]["photos"] == 95 and "sets" not in p["jpeg95"]
     assert all(s.endswith(".backend=torch") for s in p["torch"]["sets"])
-    # nothing that changes the method: no set but the raster backend
-    assert all("sets" not in v for k, v in p.items() if k != "torch")
+    assert p["seed1"]["sets"] == ["reconstruct.seed=1", "render-appearances.seed=1"]
+    # nothing that changes the method: no set but the raster backend and the seeds
+    assert all("sets" not in v for k, v in p.items() if k not in ("torch", "seed1"))
+
+
+def test_photos_resaved_look_the_same_but_are_other_bytes(st, tmp_path):
+    import cv2
+    import numpy as np
+
+    scene = tmp_path / "data" / "demo_s0"
+    (scene / "dense" / "images").mkdir(parents=True)
+    (scene / "truth.json").write_text("{}")
+    (tmp_path / "data" / "label" / "demo_s0").mkdir(parents=True)
+    (tmp_path / "data" / "label" / "demo_s0" / "a.json").write_text("{}")
+    rng = np.random.default_rng(0)
+    noise = rng.integers(0, 256, (64, 80, 3), np.uint8)
+    img = cv2.GaussianBlur(noise, (0, 0), 4)  # photo-like: smooth, little detail
+    path = scene / "dense" / "images" / "a.jpg"
+    cv2.imwrite(str(path), img, [cv2.IMWRITE_JPEG_QUALITY, 90])
+    before = path.read_bytes()
+    out = st.resaved(scene, tmp_path / "q95", 95)
+    assert out == tmp_path / "q95" / "demo_s0" and (out / "truth.json").is_file()
+    assert (tmp_path / "q95" / "label" / "demo_s0" / "a.json").is_file()
+    new = out / "dense" / "images" / "a.jpg"
+    assert new.read_bytes() != before and path.read_bytes() == before
+    diff = np.abs(cv2.imread(str(new)).astype(int) - cv2.imread(str(path)).astype(int))
+    assert 0 < diff.max() <= 16 and diff.mean() < 2  # a few steps, not identical
+    stamp = new.stat().st_mtime_ns
+    assert st.resaved(scene, tmp_path / "q95", 95) == out  # once: a rerun reuses it
+    assert new.stat().st_mtime_ns == stamp
+    (scene / "dense" / "images" / "b.jpg").write_text("not a jpeg")
+    with pytest.raises(RuntimeError, match="b.jpg"):
+        st.resaved(scene, tmp_path / "other", 95)
+
+
+def test_the_report_follows_the_chain_stage_by_stage(st, capsys):
+    runs = {
+        "t2": _run(0.5, 100, ["s"], [10], [0.5]) | {"targets": ["a", "b", "c"]},
+        "jpeg95": _run(0.4, 140, ["m"], [30], [0.6]) | {"targets": ["a", "b", "d"]},
+    }
+    s = st.scene_spread(runs)
+    assert s["targets_same"] == [True, False]
+    assert s["targets_shared"] == pytest.approx([1.0, 2 / 3])
+    st.print_stages(s)
+    out = capsys.readouterr().out
+    order = ["reconstruct", "render-appearances", "query", "evaluate", "select"]
+    assert [out.index(k) for k in order] == sorted(out.index(k) for k in order)
+    assert "equal to the reference in 0 of 1 runs; 67% shared" in out
 
 
 def test_answers_read_from_a_finished_chain(st, trained_work, tiny_scene_dir, tmp_path):
@@ -77,4 +130,5 @@ def test_answers_read_from_a_finished_chain(st, trained_work, tiny_scene_dir, tm
     assert a["pairs"] and all(
         set(v) == {"level", "iou", "area", "score"} for v in a["pairs"].values()
     )
+    assert len(a["targets"]) == 3  # the novel targets render-appearances chose
     assert "select" not in a and "style" not in a

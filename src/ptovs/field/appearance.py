@@ -18,6 +18,7 @@ luminance) ignores brightness and contrast both.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import re
 
@@ -41,6 +42,7 @@ PAPER_TARGETS = {
 }
 DIVERSITY_DECILES = (0.5, 0.4, 0.3, 0.2, 0.1, 0.0)
 QUALITY_METRICS = ("l1", "l1-relative", "dssim")
+ORDERS = ("draw", "names")
 _SSIM_C1, _SSIM_C2 = 0.01**2, 0.03**2  # Wang et al. 2004, for values in [0, 1]
 
 
@@ -124,6 +126,16 @@ def _greedy(dist: np.ndarray, order: np.ndarray, eps: float, k: int) -> list[int
     return chosen
 
 
+def name_order(names: list[str], seed: int, attempt: int) -> np.ndarray:
+    """Indices of `names` sorted by a seeded hash of each name: a photo's place
+    depends on its own name only, not on which other photos are candidates."""
+    keys = [
+        hashlib.blake2b(f"{seed}:{attempt}:{n}".encode(), digest_size=8).digest()
+        for n in names
+    ]
+    return np.array(sorted(range(len(names)), key=keys.__getitem__), dtype=np.int64)
+
+
 def select_targets(
     names: list[str],
     quality: np.ndarray,  # [M] per-pixel mean L1 of each image's self-render
@@ -134,6 +146,7 @@ def select_targets(
     tries: int = 200,
     use_quality: bool = True,
     use_diversity: bool = True,
+    order: str = "draw",
 ) -> tuple[list[str], dict]:
     """Pick up to k target images by render quality and embedding diversity.
 
@@ -148,12 +161,18 @@ def select_targets(
         use_quality: False drops ε_q: every image is a candidate (Table 4).
         use_diversity: False drops ε_d: a seeded random draw among the
             candidates (Table 4).
+        order: the order the greedy draw visits candidates in: "draw" a seeded
+            permutation of the candidates (one photo entering or leaving them
+            reorders all), "names" a seeded hash of each name (`name_order`: a
+            photo crossing ε_q changes the choice only where it wins a place).
 
     Returns:
         The chosen names (≤ k) and a report: ε_q, candidates, the ε_d levels
         tried, the final ε_d, each target's q and the minimum pairwise distance.
     """
     q = np.asarray(quality, np.float64)
+    if order not in ORDERS:
+        raise ValueError(f"order {order!r}: expected one of {ORDERS}")
     if len(names) != len(q) or len(q) != len(embeddings):
         raise ValueError("names, quality and embeddings must align")
     if k < 0:
@@ -162,6 +181,7 @@ def select_targets(
         "k_requested": k,
         "quality_quantile": quality_quantile if use_quality else None,
         "diversity": use_diversity,
+        "order": order,
     }
     if k == 0 or len(q) == 0:
         report.update(chosen=[], eps_q=None, candidates=0, note="nothing to choose")
@@ -185,10 +205,15 @@ def select_targets(
     best_eps = levels[0]
     tried = []
     want = min(k, len(cand))
+    cand_names = [names[c] for c in cand]
     for eps in levels:
         tried.append(round(eps, 6))
-        for _ in range(tries):
-            got = _greedy(dist, rng.permutation(len(cand)), eps, want)
+        for attempt in range(tries):
+            if order == "names":
+                visit = name_order(cand_names, seed, attempt)
+            else:
+                visit = rng.permutation(len(cand))
+            got = _greedy(dist, visit, eps, want)
             if len(got) > len(best):
                 best, best_eps = got, eps
             if len(got) == want:

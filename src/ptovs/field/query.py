@@ -52,12 +52,18 @@ class QueryConfig:
     canonical: tuple[str, ...] = CANONICAL
     temperature: float = 10.0
     background_filter: Literal["paper", "code", "off"] = "paper"
-    fusion: Literal["weighted", "imglvlmax", "pixmax", "pixavg", "pixweighted"] = (
-        "weighted"
-    )
+    fusion: Literal[
+        "weighted", "agree", "imglvlmax", "pixmax", "pixavg", "pixweighted"
+    ] = "weighted"
+    """How the appearance slots' maps are fused: "weighted" (the paper's: each
+    map by its peak), "agree" (the same, each novel map's weight also times its
+    correlation with the photo's own map), or Table 3's alternatives."""
     smooth_kernel: int = 20
     threshold: float = 0.4
-    threshold_mode: Literal["relative", "absolute"] = "relative"
+    threshold_mode: Literal["relative", "absolute", "stable"] = "relative"
+    """"relative": clip(2n − 1) > threshold on the min-max rescaled map n (the
+    authors'); "absolute": Ŝ ≥ threshold; "stable": the relative rule at the cut
+    within ± 0.2 of threshold where the mask's area changes least with the cut."""
     peak_quantile: float = 1.0
     """A map's peak (for the level choice, the relative threshold's top and the
     score): this quantile of its smoothed scores, or of the Gaussians' scores in

@@ -34,7 +34,7 @@ from torch import Tensor
 CANONICAL = ("object", "things", "scene", "sky", "building")
 """The supplement's canonical phrases (docs/method.md §8)."""
 BACKGROUND_PHRASES = ("sky", "background")
-FUSIONS = ("weighted", "imglvlmax", "pixmax", "pixavg", "pixweighted")
+FUSIONS = ("weighted", "agree", "imglvlmax", "pixmax", "pixavg", "pixweighted")
 BACKGROUND_FILTERS = ("paper", "code", "off")
 DIV_EPS = 1e-9
 
@@ -243,7 +243,9 @@ def fuse(scores: Tensor, mode: str = "weighted") -> Tensor:
     Modes (docs/method.md §8): "weighted" (the paper's: w_i = max_x s_i / Σ_j
     max_x s_j, then Σ_i w_i s_i), "imglvlmax" (per level the appearance map with
     the largest max; the level choice then picks among all N × L maps),
-    "pixmax", "pixavg", "pixweighted" (w_i(x) ∝ 1/((s_i − mean_i s_i)² + 1e-6)).
+    "pixmax", "pixavg", "pixweighted" (w_i(x) ∝ 1/((s_i − mean_i s_i)² + 1e-6)),
+    "agree" (the paper's weights, each novel map's times its agreement with the
+    first map, the photo's own appearance: `_fuse_agree`).
     With N = 1 every mode returns the single map.
     """
     if mode == "weighted":
@@ -252,6 +254,8 @@ def fuse(scores: Tensor, mode: str = "weighted") -> Tensor:
         n = scores.shape[1]
         w = torch.where(total > 0, peak / total.clamp_min(DIV_EPS), 1.0 / n)
         return (w * scores).sum(1)
+    if mode == "agree":
+        return _fuse_agree(scores)
     if mode == "imglvlmax":
         best = scores.amax(dim=(2, 3)).argmax(1)  # [L]
         return scores[torch.arange(len(scores)), best]
@@ -263,6 +267,30 @@ def fuse(scores: Tensor, mode: str = "weighted") -> Tensor:
         w = 1.0 / ((scores - scores.mean(1, keepdim=True)) ** 2 + 1e-6)
         return (w * scores).sum(1) / w.sum(1)
     raise ValueError(f"fusion must be one of {FUSIONS}, got {mode!r}")
+
+
+def _fuse_agree(scores: Tensor) -> Tensor:
+    """The paper's weighted fusion with each novel map's weight w_i scaled by
+    max(0, ρ_i): ρ_i the Pearson correlation over pixels of map i with map 0 (the
+    photo's own appearance, which keeps its weight). A novel appearance whose map
+    answers somewhere else than the photo's own counts less, continuously: no
+    switch flips on a near tie, and one bad slot cannot carry the fused map. A
+    constant map has no correlation (ρ = 0). Computed in float64."""
+    x = scores.to(torch.float64).flatten(2)  # [L, N, HW]
+    peak = x.amax(-1)  # [L, N]
+    c = x - x.mean(-1, keepdim=True)
+    sd = c.pow(2).sum(-1).sqrt()  # [L, N]
+    cov = (c * c[:, :1]).sum(-1)  # [L, N]
+    rho = torch.where(
+        sd * sd[:, :1] > DIV_EPS, cov / (sd * sd[:, :1]).clamp_min(DIV_EPS), 0.0
+    )
+    agree = rho.clamp(0.0, 1.0)
+    agree[:, 0] = 1.0
+    w = peak * agree
+    total = w.sum(1, keepdim=True)
+    n = scores.shape[1]
+    w = torch.where(total > 0, w / total.clamp_min(DIV_EPS), 1.0 / n)  # [L, N]
+    return (w[..., None, None] * scores.to(torch.float64)).sum(1).to(scores.dtype)
 
 
 # ---------------------------------------------------------------- finishing --
@@ -284,26 +312,58 @@ def smooth(
     return 0.5 * (box + s)
 
 
+STABLE_WINDOW = 0.2  # "stable": cuts within ± this of τ (on the clip(2n − 1) scale)
+STABLE_STEP = 0.02  # ... tried every this much
+STABLE_H = 0.05  # ... each cut's area compared this far either side
+
+
 def threshold(
     s: np.ndarray,
     tau: float = 0.4,
-    mode: Literal["relative", "absolute"] = "relative",
+    mode: Literal["relative", "absolute", "stable"] = "relative",
     top: float | None = None,
 ) -> np.ndarray:
-    """Mask of a smoothed map: relative (min-max rescale n, clip(2n − 1) > τ) or Ŝ ≥ τ.
+    """Mask of a smoothed map: relative (min-max rescale n, clip(2n − 1) > τ), Ŝ ≥ τ
+    (absolute), or stable (`stable_cut`: the relative rule at the cut near τ where
+    the mask's area changes least with the cut).
 
     `top` replaces the map's maximum in the rescale (a robust peak, `peak_of`);
     values above it count as n = 1."""
     if mode == "absolute":
         return s >= tau
-    if mode != "relative":
-        raise ValueError(f"threshold mode must be relative or absolute, got {mode!r}")
+    if mode not in ("relative", "stable"):
+        raise ValueError(
+            f"threshold mode must be relative, absolute or stable, got {mode!r}"
+        )
     if not s.size:
         return np.zeros(s.shape, bool)
     lo = float(s.min())
     hi = float(s.max()) if top is None else max(float(top), lo)
     n = (s - lo) / (hi - lo + DIV_EPS)
-    return np.clip(2.0 * n - 1.0, 0.0, 1.0) > tau
+    v = np.clip(2.0 * n - 1.0, 0.0, 1.0)
+    return v > (stable_cut(v, tau) if mode == "stable" else tau)
+
+
+def stable_cut(v: np.ndarray, tau: float) -> float:
+    """The cut t within ± `STABLE_WINDOW` of τ where the area above it, A(t),
+    changes least: min over t of A(t − h) − A(t + h) (pixels), the nearest to τ
+    among equals (an even ramp keeps τ). On a map whose top is a plateau with steep sides, every
+    nearby map shares the plateau, so the mask does not jump with a small change
+    of the map, as a fixed cut through a gentle slope does (maximally stable
+    thresholds; the idea of MSER regions)."""
+    x = np.sort(np.asarray(v, np.float64).reshape(-1))
+    k = int(round(STABLE_WINDOW / STABLE_STEP))
+    cuts = tau + STABLE_STEP * np.arange(-k, k + 1)
+    cuts = cuts[(cuts >= 0.0) & (cuts < 1.0)]
+    if cuts.size == 0:
+        return float(tau)
+
+    def area(t: np.ndarray) -> np.ndarray:
+        return (x.size - np.searchsorted(x, t, side="right")).astype(np.float64)
+
+    change = area(cuts - STABLE_H) - area(cuts + STABLE_H)
+    best = np.flatnonzero(change <= change.min() + 1e-12)
+    return float(cuts[best[np.argmin(np.abs(cuts[best] - tau))]])
 
 
 def peak_of(values: np.ndarray, quantile: float = 1.0) -> float:

@@ -24,6 +24,7 @@ import torch
 
 from ptovs.artifacts import Artifact, Checkpoint, json_dataset
 from ptovs.field.appearance import (
+    ORDERS,
     QUALITY_METRICS,
     min_pairwise_l1,
     paper_targets,
@@ -67,6 +68,11 @@ class Config:
     good renders), "diversity" (no ε_q), "random" (neither)."""
     seed: int = 0
     """Seeds the diversity sampling (Table 4 re-draws targets with 5 seeds)."""
+    order: Literal["draw", "names"] = "draw"
+    """The order the diversity sampling visits the good renders in: "draw" a
+    seeded permutation of them (one photo crossing ε_q reorders every other), or
+    "names" a seeded hash of each photo's name (a photo crossing ε_q changes the
+    targets only where it wins a place)."""
     bgr_swap_renders: bool = False
     """Reproduce the authors' bug: store renders with R and B swapped."""
     backend: str = "auto"
@@ -152,6 +158,11 @@ def _run(
             f"render-appearances.quality_metric = {config.quality_metric!r}: "
             f"expected one of {', '.join(QUALITY_METRICS)}"
         )
+    if config.order not in ORDERS:
+        raise ValueError(
+            f"render-appearances.order = {config.order!r}: expected one of "
+            f"{', '.join(ORDERS)}"
+        )
     if config.selection not in SELECTIONS:
         raise ValueError(
             f"render-appearances.selection = {config.selection!r}: expected one of "
@@ -192,6 +203,7 @@ def _run(
                     config.seed,
                     use_quality="quality" in config.selection.split("+"),
                     use_diversity="diversity" in config.selection.split("+"),
+                    order=config.order,
                 )
                 report.update(sel)
                 report["mode"] = "select"
