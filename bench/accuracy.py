@@ -151,9 +151,8 @@ CHAIN_LABELS.update({
        for k in (3, 5)},
 })  # fmt: skip
 # the steadier query rules, each against `male` (query only: the chain's artifacts
-# are shared): the agreement-weighted fusion, a soft level choice, a robust peak
+# are shared): a soft level choice, a robust peak, the cut where the area is steadiest
 STEADY_QUERY = {
-    "fuse-agree": ["fusion=agree"],
     "level-soft": ["level_softness=0.02"],
     "peak-q": ["peak_quantile=0.995"],
     "thr-stable": ["threshold_mode=stable"],
@@ -167,8 +166,6 @@ CHAIN_LABELS["names-stable"] = (
 )
 CHAIN_LABELS["no-multi-appearance-stable"] = (
     "no-multi-appearance", {"query": ["threshold_mode=stable"]})  # fmt: skip
-CHAIN_LABELS["steady"] = ("male", {"query": [
-    "fusion=agree", "level_softness=0.02", "threshold_mode=stable"]})  # fmt: skip
 # measured only when asked for (--labels), kept out of the default run so that
 # `make bench-accuracy` stays within its time: Table 3 row 3, the code-space lift,
 # and Table 3 and 4 rows under truth segments (`make bench-multiapp`)
@@ -177,7 +174,7 @@ OPTIONAL_LABELS = (
     "no-multi-appearance-truth", "same-appearance-truth", "select-random-truth",
     "male-segment-once", "male-segment-once-orig", "male-min-crop-16",
     "male-min-crop-32", "auto", "plain", "gauss-3k", "gauss-5k", *STEADY_QUERY,
-    "steady", "order-names", "names-stable", "no-multi-appearance-stable",
+    "order-names", "names-stable", "no-multi-appearance-stable",
 )  # fmt: skip
 CHAIN_LABELS.update({v: (v, {}) for v in ("no-uncertainty-ae", "lift-codes")})
 FEATURE_LABELS = ("2d", "2d-ae", "2d-nosmooth", "2d-best", "2d-truth")

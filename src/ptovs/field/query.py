@@ -52,12 +52,9 @@ class QueryConfig:
     canonical: tuple[str, ...] = CANONICAL
     temperature: float = 10.0
     background_filter: Literal["paper", "code", "off"] = "paper"
-    fusion: Literal[
-        "weighted", "agree", "imglvlmax", "pixmax", "pixavg", "pixweighted"
-    ] = "weighted"
-    """How the appearance slots' maps are fused: "weighted" (the paper's: each
-    map by its peak), "agree" (the same, each novel map's weight also times its
-    correlation with the photo's own map), or Table 3's alternatives."""
+    fusion: Literal["weighted", "imglvlmax", "pixmax", "pixavg", "pixweighted"] = (
+        "weighted"
+    )
     smooth_kernel: int = 20
     threshold: float = 0.4
     threshold_mode: Literal["relative", "absolute", "stable"] = "relative"

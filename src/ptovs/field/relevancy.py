@@ -34,7 +34,7 @@ from torch import Tensor
 CANONICAL = ("object", "things", "scene", "sky", "building")
 """The supplement's canonical phrases (docs/method.md §8)."""
 BACKGROUND_PHRASES = ("sky", "background")
-FUSIONS = ("weighted", "agree", "imglvlmax", "pixmax", "pixavg", "pixweighted")
+FUSIONS = ("weighted", "imglvlmax", "pixmax", "pixavg", "pixweighted")
 BACKGROUND_FILTERS = ("paper", "code", "off")
 DIV_EPS = 1e-9
 
@@ -243,9 +243,7 @@ def fuse(scores: Tensor, mode: str = "weighted") -> Tensor:
     Modes (docs/method.md §8): "weighted" (the paper's: w_i = max_x s_i / Σ_j
     max_x s_j, then Σ_i w_i s_i), "imglvlmax" (per level the appearance map with
     the largest max; the level choice then picks among all N × L maps),
-    "pixmax", "pixavg", "pixweighted" (w_i(x) ∝ 1/((s_i − mean_i s_i)² + 1e-6)),
-    "agree" (the paper's weights, each novel map's times its agreement with the
-    first map, the photo's own appearance: `_fuse_agree`).
+    "pixmax", "pixavg", "pixweighted" (w_i(x) ∝ 1/((s_i − mean_i s_i)² + 1e-6)).
     With N = 1 every mode returns the single map.
     """
     if mode == "weighted":
@@ -254,8 +252,6 @@ def fuse(scores: Tensor, mode: str = "weighted") -> Tensor:
         n = scores.shape[1]
         w = torch.where(total > 0, peak / total.clamp_min(DIV_EPS), 1.0 / n)
         return (w * scores).sum(1)
-    if mode == "agree":
-        return _fuse_agree(scores)
     if mode == "imglvlmax":
         best = scores.amax(dim=(2, 3)).argmax(1)  # [L]
         return scores[torch.arange(len(scores)), best]
@@ -267,30 +263,6 @@ def fuse(scores: Tensor, mode: str = "weighted") -> Tensor:
         w = 1.0 / ((scores - scores.mean(1, keepdim=True)) ** 2 + 1e-6)
         return (w * scores).sum(1) / w.sum(1)
     raise ValueError(f"fusion must be one of {FUSIONS}, got {mode!r}")
-
-
-def _fuse_agree(scores: Tensor) -> Tensor:
-    """The paper's weighted fusion with each novel map's weight w_i scaled by
-    max(0, ρ_i): ρ_i the Pearson correlation over pixels of map i with map 0 (the
-    photo's own appearance, which keeps its weight). A novel appearance whose map
-    answers somewhere else than the photo's own counts less, continuously: no
-    switch flips on a near tie, and one bad slot cannot carry the fused map. A
-    constant map has no correlation (ρ = 0). Computed in float64."""
-    x = scores.to(torch.float64).flatten(2)  # [L, N, HW]
-    peak = x.amax(-1)  # [L, N]
-    c = x - x.mean(-1, keepdim=True)
-    sd = c.pow(2).sum(-1).sqrt()  # [L, N]
-    cov = (c * c[:, :1]).sum(-1)  # [L, N]
-    rho = torch.where(
-        sd * sd[:, :1] > DIV_EPS, cov / (sd * sd[:, :1]).clamp_min(DIV_EPS), 0.0
-    )
-    agree = rho.clamp(0.0, 1.0)
-    agree[:, 0] = 1.0
-    w = peak * agree
-    total = w.sum(1, keepdim=True)
-    n = scores.shape[1]
-    w = torch.where(total > 0, w / total.clamp_min(DIV_EPS), 1.0 / n)  # [L, N]
-    return (w[..., None, None] * scores.to(torch.float64)).sum(1).to(scores.dtype)
 
 
 # ---------------------------------------------------------------- finishing --
