@@ -185,10 +185,10 @@ bench-speed-error: setup
 	  --real $(REAL) --data $(QDATA)/speed_error --work $(QWORK)/speed_error \
 	  --recon-json $(QWORK)/speed_error/reconstruct.json
 
-# stability: the answers a user reads when only the rounding of floats changes (threads
-# 1/2/3, kernels held to AVX2, the pure-PyTorch rasterizer), each run in its own work
-# folder: the demo scene under every perturbation, then the accuracy instrument's dev
-# seeds (STAB_SEEDS) at 2 threads, native and held to AVX2 (about 2 h, not timed whole)
+# stability: the answers a user reads when the input moves by what no user would notice
+# (the photos re-saved as JPEG 95, torch's float paths moved, the chain's seeds changed),
+# each run in its own work folder: the demo scene under every perturbation, then the
+# accuracy instrument's dev seeds (STAB_SEEDS; about 10 min a seed, not timed whole)
 STAB_SEEDS ?= 0-8
 bench-stability: setup
 	$(BIN)/python bench/stability.py --seeds $(STAB_SEEDS) --data $(QDATA)/stability \

@@ -65,8 +65,8 @@ class QueryConfig:
     """A map's peak (for the level choice, the relative threshold's top and the
     score): this quantile of its smoothed scores, or of the Gaussians' scores in
     `select`; 1 = the maximum, as the paper. Below 1 the peak is a property of the
-    map's top, not of one pixel or one Gaussian (docs/guide.md, "Same answers on any
-    CPU")."""
+    map's top, not of one pixel or one Gaussian (docs/guide.md, "How steady the
+    answers are")."""
     level_softness: float = 0.0
     """0: the level with the highest peak, as the paper. > 0: the levels' maps blended
     with weights softmax(peak / this) before the threshold, so levels whose peaks

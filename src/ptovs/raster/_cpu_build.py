@@ -7,7 +7,7 @@ system C++ compiler) into `<cache>/torch_ext/<name>/`, where `<cache>` is
 a hash of the source, the flags, torch, Python and the CPU (the build uses
 `-march=native`), so a shared home directory never loads a library built for another
 machine. `$PTOVS_MARCH` names another target (e.g. `x86-64-v3`, AVX2), built into a
-library of its own (docs/guide.md, "Same answers on any CPU"). The library exports a
+library of its own (docs/guide.md, "How steady the answers are"). The library exports a
 plain C ABI called through ctypes: it includes no torch headers, so a cold build takes
 about 6 s, and ctypes releases the GIL during a call.
 """
