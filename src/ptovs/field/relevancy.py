@@ -17,7 +17,7 @@ and the tests share it:
 4. `fuse`: the post-ensemble over appearances (the paper's image-level max
    weighting by default, the Table 3 modes as options).
 5. `finish`: mean-filter smoothing, level choice, threshold (relative rule by
-   default), majority filter.
+   default; "stable" as an option), majority filter.
 """
 
 from __future__ import annotations
@@ -284,9 +284,7 @@ def smooth(
     return 0.5 * (box + s)
 
 
-STABLE_WINDOW = 0.2  # "stable": cuts within ± this of τ (on the clip(2n − 1) scale)
-STABLE_STEP = 0.02  # ... tried every this much
-STABLE_H = 0.05  # ... each cut's area compared this far either side
+STABLE_WINDOW, STABLE_STEP, STABLE_H = 0.2, 0.02, 0.05  # "stable": cuts, step, h
 
 
 def threshold(
@@ -296,17 +294,12 @@ def threshold(
     top: float | None = None,
 ) -> np.ndarray:
     """Mask of a smoothed map: relative (min-max rescale n, clip(2n − 1) > τ), Ŝ ≥ τ
-    (absolute), or stable (`stable_cut`: the relative rule at the cut near τ where
-    the mask's area changes least with the cut).
-
-    `top` replaces the map's maximum in the rescale (a robust peak, `peak_of`);
-    values above it count as n = 1."""
+    (absolute), or stable (the relative rule at `stable_cut`'s cut). `top` replaces
+    the maximum in the rescale (a robust peak, `peak_of`); above it, n = 1."""
     if mode == "absolute":
         return s >= tau
     if mode not in ("relative", "stable"):
-        raise ValueError(
-            f"threshold mode must be relative, absolute or stable, got {mode!r}"
-        )
+        raise ValueError(f"threshold mode: relative, absolute or stable, not {mode!r}")
     if not s.size:
         return np.zeros(s.shape, bool)
     lo = float(s.min())
@@ -317,32 +310,26 @@ def threshold(
 
 
 def stable_cut(v: np.ndarray, tau: float) -> float:
-    """The cut t within ± `STABLE_WINDOW` of τ where the area above it, A(t),
-    changes least: min over t of A(t − h) − A(t + h) (pixels), the nearest to τ
-    among equals (an even ramp keeps τ). On a map whose top is a plateau with steep sides, every
-    nearby map shares the plateau, so the mask does not jump with a small change
-    of the map, as a fixed cut through a gentle slope does (maximally stable
-    thresholds; the idea of MSER regions)."""
+    """The cut t within ± `STABLE_WINDOW` of τ where the area above it changes
+    least (A(t − h) − A(t + h), pixels; the nearest to τ among equals, so an even
+    ramp keeps τ): a plateau with steep sides, which nearby maps share, instead of
+    a fixed cut through a gentle slope (maximally stable thresholds, as in MSER)."""
     x = np.sort(np.asarray(v, np.float64).reshape(-1))
     k = int(round(STABLE_WINDOW / STABLE_STEP))
     cuts = tau + STABLE_STEP * np.arange(-k, k + 1)
     cuts = cuts[(cuts >= 0.0) & (cuts < 1.0)]
     if cuts.size == 0:
         return float(tau)
-
-    def area(t: np.ndarray) -> np.ndarray:
-        return (x.size - np.searchsorted(x, t, side="right")).astype(np.float64)
-
-    change = area(cuts - STABLE_H) - area(cuts + STABLE_H)
+    lo, hi = (np.searchsorted(x, cuts + d, side="right") for d in (-STABLE_H, STABLE_H))
+    change = (hi - lo).astype(np.float64)  # pixels between the two cuts
     best = np.flatnonzero(change <= change.min() + 1e-12)
     return float(cuts[best[np.argmin(np.abs(cuts[best] - tau))]])
 
 
 def peak_of(values: np.ndarray, quantile: float = 1.0) -> float:
     """A map's peak: its maximum (`quantile` ≥ 1, the paper's), else that quantile
-    of its values (float64; 0 for an empty map). One pixel or one Gaussian decides
-    a maximum, so the maximum moves with every rounding that moves that one value;
-    a high quantile is an average property of the map's top and moves less."""
+    of its values (float64; 0 for an empty map). One pixel or Gaussian decides a
+    maximum; a high quantile is a property of the map's top and moves less."""
     v = np.asarray(values).reshape(-1)
     if v.size == 0:
         return 0.0
@@ -354,8 +341,7 @@ def peak_of(values: np.ndarray, quantile: float = 1.0) -> float:
 def choose_level(peaks: np.ndarray, softness: float = 0.0) -> tuple[int, np.ndarray]:
     """(ℓ*, weights [L]): ℓ* = argmax of the peaks; the weights are one-hot at ℓ*
     (`softness` ≤ 0, the paper's choice) or softmax(peaks / softness): levels whose
-    peaks lie within a few `softness` of the best are blended, so a near-tie moves
-    the answer a little instead of switching it to another level's map."""
+    peaks nearly tie are blended, so a near-tie moves the answer a little."""
     p = np.asarray(peaks, np.float64)
     level = int(np.argmax(p))
     if softness <= 0 or len(p) < 2:
