@@ -24,14 +24,16 @@ Each perturbation runs the whole chain in a work folder of its own (artifacts ar
 by data and config, not by rounding, so a shared folder would hand one run's answers
 to the next), then reads what a user reads, stage by stage: held-out PSNR (as is,
 NeRF-W), the Gaussians, the novel targets render-appearances chose, per (view, query)
-the chosen level, the peak score and the mask's area, mIoU / mPA / mP, `select TEXT`'s count, level and score, and the style vote.
+the chosen level, the peak score and the mask's area, mIoU / mPA / mP, `select TEXT`'s
+count, level and score, and the style vote.
 
-The report gives each answer's spread over the perturbations: the range of a number,
-max / min of a count, the share of runs that agree with the most common choice, and
-the first stage whose output moves by more than its input did. On the dev seeds: each
-seed's mIoU range, their mean, and beside it the seed-to-seed spread of mIoU (the
-standard deviation over seeds), which is what a single scene's figure is already
-subject to.
+The report gives each answer's spread over the perturbations (the range of a number,
+max / min of a count, the share of runs that agree with the most common choice) in the
+chain's order, so the first stage whose answer moves a lot is the one that amplified
+the change. On the dev seeds: each seed's mIoU range, their mean, and beside it the
+seed-to-seed spread of mIoU (the standard deviation over seeds), which is what a single
+scene's figure is already subject to. `--set KEY=VALUE --name N --out F` measures a rule
+under every perturbation, starting from each perturbation's trained chain.
 """
 
 from __future__ import annotations
@@ -413,7 +415,7 @@ def main() -> None:
         action="append",
         default=[],
         metavar="STAGE.KEY=VALUE",
-        help="a setting for every run (e.g. query.fusion=agree); give "
+        help="a setting for every run (e.g. query.threshold_mode=stable); give "
         "--name and --out too: the runs start from the plain runs' chains",
     )
     ap.add_argument("--name", default="set", help="names the --set runs' work folders")
