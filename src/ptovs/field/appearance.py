@@ -206,11 +206,14 @@ def select_targets(
     tried = []
     want = min(k, len(cand))
     cand_names = [names[c] for c in cand]
+    named: dict[int, np.ndarray] = {}  # an attempt's name order, the same at every ε_d
     for eps in levels:
         tried.append(round(eps, 6))
         for attempt in range(tries):
             if order == "names":
-                visit = name_order(cand_names, seed, attempt)
+                if attempt not in named:
+                    named[attempt] = name_order(cand_names, seed, attempt)
+                visit = named[attempt]
             else:
                 visit = rng.permutation(len(cand))
             got = _greedy(dist, visit, eps, want)

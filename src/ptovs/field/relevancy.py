@@ -321,8 +321,8 @@ def stable_cut(v: np.ndarray, tau: float) -> float:
     if cuts.size == 0:
         return float(tau)
     lo, hi = (np.searchsorted(x, cuts + d, side="right") for d in (-STABLE_H, STABLE_H))
-    change = (hi - lo).astype(np.float64)  # pixels between the two cuts
-    best = np.flatnonzero(change <= change.min() + 1e-12)
+    change = hi - lo  # pixels between the two cuts
+    best = np.flatnonzero(change == change.min())
     return float(cuts[best[np.argmin(np.abs(cuts[best] - tau))]])
 
 
