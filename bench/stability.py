@@ -3,6 +3,7 @@
     make bench-stability                               # the demo, then the dev seeds
     python bench/stability.py --part demo              # the demo scene alone
     python bench/stability.py --part dev --seeds 0-8   # the accuracy instrument's dev seeds
+    python bench/stability.py --part attribute         # which stage turns a small change large
     python bench/stability.py --report-only            # tables from the results file
 
 Perturbations (the headline four run by default; the rest on request):
@@ -34,6 +35,15 @@ the change. On the dev seeds: each seed's mIoU range, their mean, and beside it 
 seed-to-seed spread of mIoU (the standard deviation over seeds), which is what a single
 scene's figure is already subject to. `--set KEY=VALUE --name N --out F` measures a rule
 under every perturbation, starting from each perturbation's trained chain.
+
+`--part attribute` says which stage turns a small change into a large one. For each
+demo perturbation that leaves the photos alone it reruns the chain with the
+reference's (t2's) artifacts hard-linked up to a stage (`--after`; default
+reconstruct, extract-features, train-ae), so the perturbation acts only on the stages
+after it: a stage whose inclusion moves mIoU most is where the change grows. Every
+run, attributed or whole, is also compared with the reference map by map: the
+median Pearson correlation of the chosen relevancy maps and the median IoU between
+the two masks, so a threshold that turns nearly equal maps into different masks shows.
 """
 
 from __future__ import annotations
@@ -149,11 +159,18 @@ def run_scene(
     style: bool,
     config: str | None,
     extra: tuple[str, ...] = (),
+    after: str | None = None,
 ) -> dict:
     """The whole chain on `scene` under perturbation `label` (and the `--set`s
-    `extra`), then its answers."""
+    `extra`), then its answers. `after`: the perturbation acts only on the stages
+    after this one (`work` already holds the reference's artifacts up to it)."""
     p = PERTURBATIONS[label]
     env, sets, threads = p.get("env", {}), [*p.get("sets", []), *extra], p["threads"]
+    if after is not None:
+        if p.get("photos"):
+            raise ValueError(f"{label}: moved photos act from the first stage on")
+        done = CHAIN[: CHAIN.index(after) + 1]
+        sets = [x for x in sets if x.split(".", 1)[0] not in done]
     if p.get("photos"):
         scene = resaved(scene, work.parent / f"photos-q{p['photos']}", p["photos"])
     cfg = ["--config", config] if config else []
@@ -201,16 +218,21 @@ def resaved(scene: Path, root: Path, quality: int) -> Path:
     return dst
 
 
-def seeded_work(base: Path, work: Path) -> Path:
-    """`work` for a run with other query settings: the base run's chain up to
-    train-male hard-linked in (artifacts are replaced, never written in place), so
-    only the query and what follows it run again. Files already there are kept."""
+# the stages before the answers, in the chain's order
+CHAIN = ("reconstruct", "render-appearances", "extract-features", "uncertainty",
+         "train-ae", "train-male")  # fmt: skip
+ATTRIBUTE_AFTER = ("reconstruct", "extract-features", "train-ae")
+
+
+def seeded_work(base: Path, work: Path, stages: tuple[str, ...] = CHAIN) -> Path:
+    """`work` holding the base run's artifacts of `stages` (default: the chain up
+    to train-male), hard-linked (artifacts are replaced, never written in place),
+    so only the stages after them run again. Files already there are kept."""
     import os
 
-    answers_dirs = {"query", "evaluate", "query-out", "style-out"}
     for src in sorted(base.rglob("*")) if base.is_dir() else []:
         rel = src.relative_to(base)
-        if rel.parts[1:2] and rel.parts[1] in answers_dirs or "select" in src.name:
+        if len(rel.parts) < 2 or rel.parts[1] not in stages:
             continue
         dst = work / rel
         if src.is_dir():
@@ -280,6 +302,39 @@ def scene_spread(runs: dict[str, dict]) -> dict:
     return out
 
 
+def map_agreement(ref: Path, work: Path) -> dict:
+    """A run's query against the reference's, pair by pair (view, query): the
+    Pearson correlation of the two relevancy maps at the reference's level and
+    the IoU of the two masks; medians over the pairs both answered."""
+    from ptovs.artifacts import Artifact
+    from ptovs.field.query import read_results
+
+    def load(w: Path) -> tuple[dict, dict]:
+        (path,) = sorted(w.glob("query/*.h5"))
+        with Artifact(path) as a:
+            return read_results(a, ("mask", "level", "smoothed"))
+
+    (ma, va), (mb, vb) = load(ref), load(work)
+    corr, iou = [], []
+    for name in sorted(set(va) & set(vb)):
+        for qi, text in enumerate(ma["queries"]):
+            if text not in mb["queries"]:
+                continue
+            qj, lv = mb["queries"].index(text), int(va[name]["level"][qi])
+            a = va[name]["smoothed"][qi, lv].astype(np.float64).ravel()
+            b = vb[name]["smoothed"][qj, lv].astype(np.float64).ravel()
+            if a.std() > 0 and b.std() > 0:
+                corr.append(float(np.corrcoef(a, b)[0, 1]))
+            m1, m2 = va[name]["mask"][qi] > 0, vb[name]["mask"][qj] > 0
+            union = int((m1 | m2).sum())
+            iou.append(float((m1 & m2).sum() / union) if union else 1.0)
+    return {
+        "map_corr_median": float(np.median(corr)) if corr else None,
+        "mask_iou_median": float(np.median(iou)) if iou else None,
+        "pairs": len(iou),
+    }
+
+
 # -------------------------------------------------------------------- parts --
 def _work(args: argparse.Namespace, root: Path, label: str) -> Path:
     """The perturbation's work folder; under `--set`s (`--name`) a folder of its
@@ -304,6 +359,37 @@ def part_demo(args: argparse.Namespace, res: Results) -> None:
         demo[label] = run_scene(label, scene, work, args.text, True, DEMO_CONFIG,
                                 tuple(args.set))  # fmt: skip
         res.save()
+    ref = _work(args, args.work / "demo", HEADLINE[0]) / scene.name
+    for label, r in demo.items():
+        work = _work(args, args.work / "demo", label) / scene.name
+        if "maps" not in r and label != HEADLINE[0] and ref.is_dir() and work.is_dir():
+            r["maps"] = map_agreement(ref, work)
+    res.save()
+
+
+def part_attribute(args: argparse.Namespace, res: Results) -> None:
+    """The demo perturbations that leave the photos alone, each acting only after
+    each stage of `--after` (the reference's chain linked up to it)."""
+    scene = args.data / "demo" / "demo_s0"
+    ref = args.work / "demo" / HEADLINE[0]
+    if not (ref / scene.name).is_dir():
+        raise SystemExit(f"{ref}: run --part demo first (the reference's chain)")
+    attr = res.setdefault("attribute", {})
+    for label in args.demo_perturbations:
+        if label == HEADLINE[0] or PERTURBATIONS[label].get("photos"):
+            continue
+        for stage in args.after:
+            key = f"{label}@{stage}"
+            if key in attr:
+                continue
+            print(f"demo {label}, after {stage} ...", flush=True)
+            work = seeded_work(
+                ref, args.work / "attribute" / key, CHAIN[: CHAIN.index(stage) + 1]
+            )
+            attr[key] = run_scene(label, scene, work, args.text, False, DEMO_CONFIG,
+                                  after=stage)  # fmt: skip
+            attr[key]["maps"] = map_agreement(ref / scene.name, work / scene.name)
+            res.save()
 
 
 def part_dev(args: argparse.Namespace, res: Results) -> None:
@@ -368,6 +454,21 @@ def report(res: Results) -> None:
               f"level agreement {s.get('level_agreement', 1):.2f} ({s.get('level_flips')} "
               f"pairs flip); score range {s.get('score_range_mean', 0):.3f}; "
               f"mask area max/min (median) {s.get('area_ratio_median', 0):.2f}")  # fmt: skip
+    attr = res.get("attribute", {})
+    if attr and demo:
+        base = demo[HEADLINE[0]]["miou"]
+        print("\nWhere the change grows (demo): the perturbation acting only after a "
+              f"stage; the reference ({HEADLINE[0]}) reads {base:.3f}")  # fmt: skip
+        print("| perturbation | acts after | mIoU | Δ | map correlation | mask IoU |")
+        print("|---|---|---|---|---|---|")
+        for label in (k for k in demo if k != HEADLINE[0]):
+            rows = [(k.split("@")[1], r) for k, r in attr.items()
+                    if k.split("@")[0] == label]  # fmt: skip
+            for stage, r in [*rows, ("(whole chain)", demo[label])]:
+                m = r.get("maps", {})
+                print(f"| {label} | {stage} | {r['miou']:.3f} | "
+                      f"{r['miou'] - base:+.3f} | {m.get('map_corr_median', float('nan')):.3f} | "
+                      f"{m.get('mask_iou_median', float('nan')):.2f} |")  # fmt: skip
     dev = res.get("dev", {})
     per_seed = {k: scene_spread(v) for k, v in dev.items() if len(v) >= 2}
     if per_seed:
@@ -395,8 +496,11 @@ def report(res: Results) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument(
-        "--part", choices=("demo", "dev"), nargs="*", default=["demo", "dev"]
-    )
+        "--part", choices=("demo", "dev", "attribute"), nargs="*",
+        default=["demo", "dev"],
+    )  # fmt: skip
+    ap.add_argument("--after", nargs="+", default=list(ATTRIBUTE_AFTER), choices=CHAIN,
+                    help="attribute: the stages after which the perturbation acts")  # fmt: skip
     ap.add_argument("--seeds", nargs="+", default=["0-8"], help="dev seeds")
     ap.add_argument("--demo-perturbations", nargs="+", default=list(HEADLINE),
                     choices=list(PERTURBATIONS))  # fmt: skip
@@ -437,6 +541,8 @@ def main() -> None:
             part_demo(args, res)
         if "dev" in args.part:
             part_dev(args, res)
+        if "attribute" in args.part:
+            part_attribute(args, res)
     report(res)
 
 

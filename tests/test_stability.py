@@ -132,3 +132,54 @@ def test_answers_read_from_a_finished_chain(st, trained_work, tiny_scene_dir, tm
     )
     assert len(a["targets"]) == 3  # the novel targets render-appearances chose
     assert "select" not in a and "style" not in a
+
+
+def test_attribution_links_the_reference_up_to_a_stage(st, tmp_path):
+    base = tmp_path / "ref"
+    for stage in (*st.CHAIN, "query", "evaluate"):
+        (base / "scene" / stage).mkdir(parents=True)
+        (base / "scene" / stage / "a.h5").write_text(stage)
+    (base / "scene" / "select.json").write_text("{}")
+    work = st.seeded_work(base, tmp_path / "w", st.CHAIN[:3])
+    linked = sorted(p.parent.name for p in (work / "scene").rglob("*.h5"))
+    assert linked == sorted(st.CHAIN[:3])
+    assert (work / "scene" / "extract-features" / "a.h5").stat().st_nlink == 2
+    whole = st.seeded_work(base, tmp_path / "w2")  # a --set run: up to train-male
+    assert sorted(p.parent.name for p in whole.rglob("*.h5")) == sorted(st.CHAIN)
+
+
+def test_attribution_drops_the_settings_of_linked_stages(st, monkeypatch, tmp_path):
+    calls = []
+    monkeypatch.setattr(st, "_ptovs", lambda w, t, env, sets, *a: calls.append(sets))
+    monkeypatch.setattr(st, "answers", lambda *a: {"miou": 0.5})
+    scene = tmp_path / "s"
+    st.run_scene("seed1", scene, tmp_path / "w", None, False, None, after="reconstruct")
+    st.run_scene("seed1", scene, tmp_path / "w", None, False, None, after="train-ae")
+    st.run_scene("seed1", scene, tmp_path / "w", None, False, None)
+    assert calls == [
+        ["render-appearances.seed=1"],
+        [],
+        ["reconstruct.seed=1", "render-appearances.seed=1"],
+    ]
+    with pytest.raises(ValueError, match="photos"):  # a re-save acts from the start
+        st.run_scene(
+            "jpeg95", scene, tmp_path / "w", None, False, None, after="reconstruct"
+        )
+
+
+def test_equal_maps_cut_otherwise_show_as_masks_not_maps(
+    st, trained_work, tiny_scene_dir, tmp_path
+):
+    a = copy_work(trained_work[0], tmp_path / "a")
+    b = copy_work(trained_work[0], tmp_path / "b")
+    run_cli(a, "query", "--data", str(tiny_scene_dir), "--no-pictures")
+    run_cli(b, "--set", "query.threshold=0.1", "query", "--data",
+            str(tiny_scene_dir), "--no-pictures")  # fmt: skip
+    (scene,) = [p.name for p in a.iterdir() if (p / "query").is_dir()]
+    same = st.map_agreement(a / scene, a / scene)
+    assert same["pairs"] > 0
+    assert same["map_corr_median"] == pytest.approx(1.0)
+    assert same["mask_iou_median"] == 1.0
+    cut = st.map_agreement(a / scene, b / scene)
+    assert cut["map_corr_median"] == pytest.approx(1.0)  # the same maps ...
+    assert cut["mask_iou_median"] < 0.9  # ... cut lower: larger masks
