@@ -4,6 +4,7 @@
     python bench/stability.py --part demo              # the demo scene alone
     python bench/stability.py --part dev --seeds 0-8   # the accuracy instrument's dev seeds
     python bench/stability.py --part attribute         # which stage turns a small change large
+    python bench/stability.py --part attribute-dev --seeds 0-2   # the same on dev seeds
     python bench/stability.py --report-only            # tables from the results file
 
 Perturbations (the headline four run by default; the rest on request):
@@ -367,29 +368,42 @@ def part_demo(args: argparse.Namespace, res: Results) -> None:
     res.save()
 
 
-def part_attribute(args: argparse.Namespace, res: Results) -> None:
-    """The demo perturbations that leave the photos alone, each acting only after
-    each stage of `--after` (the reference's chain linked up to it)."""
-    scene = args.data / "demo" / "demo_s0"
-    ref = args.work / "demo" / HEADLINE[0]
-    if not (ref / scene.name).is_dir():
-        raise SystemExit(f"{ref}: run --part demo first (the reference's chain)")
-    attr = res.setdefault("attribute", {})
-    for label in args.demo_perturbations:
-        if label == HEADLINE[0] or PERTURBATIONS[label].get("photos"):
-            continue
-        for stage in args.after:
-            key = f"{label}@{stage}"
-            if key in attr:
+def part_attribute(args: argparse.Namespace, res: Results, dev: bool = False) -> None:
+    """The perturbations that leave the photos alone, each acting only after each
+    stage of `--after` (the reference's chain linked up to it): on the demo, or
+    (`dev`) on each dev seed of `--seeds` whose reference chain `--part dev` made."""
+    if dev:
+        ref = args.work / "dev" / HEADLINE[0]
+        config, text, labels = (
+            str(ROOT / "configs" / "accuracy.toml"),
+            None,
+            args.dev_perturbations,
+        )
+        scenes = {str(s): args.acc_data / f"small_s{s}" for s in seed_list(args.seeds)}
+    else:
+        ref = args.work / "demo" / HEADLINE[0]
+        config, text, labels = DEMO_CONFIG, args.text, args.demo_perturbations
+        scenes = {"demo": args.data / "demo" / "demo_s0"}
+    for name, scene in scenes.items():
+        if not (ref / scene.name).is_dir():
+            raise SystemExit(f"{ref / scene.name}: run --part {'dev' if dev else 'demo'} "
+                             "first (the reference's chain)")  # fmt: skip
+        attr = res.setdefault("attribute", {}).setdefault(name, {})
+        for label in labels:
+            if label == HEADLINE[0] or PERTURBATIONS[label].get("photos"):
                 continue
-            print(f"demo {label}, after {stage} ...", flush=True)
-            work = seeded_work(
-                ref, args.work / "attribute" / key, CHAIN[: CHAIN.index(stage) + 1]
-            )
-            attr[key] = run_scene(label, scene, work, args.text, False, DEMO_CONFIG,
-                                  after=stage)  # fmt: skip
-            attr[key]["maps"] = map_agreement(ref / scene.name, work / scene.name)
-            res.save()
+            for stage in args.after:
+                key = f"{label}@{stage}"
+                if key in attr:
+                    continue
+                print(f"{name} {label}, after {stage} ...", flush=True)
+                work = seeded_work(ref, args.work / "attribute" / name / key,
+                                   CHAIN[: CHAIN.index(stage) + 1])  # fmt: skip
+                attr[key] = run_scene(
+                    label, scene, work, text, False, config, after=stage
+                )
+                attr[key]["maps"] = map_agreement(ref / scene.name, work / scene.name)
+                res.save()
 
 
 def part_dev(args: argparse.Namespace, res: Results) -> None:
@@ -409,6 +423,17 @@ def part_dev(args: argparse.Namespace, res: Results) -> None:
             runs[label] = run_scene(label, scene, work, None, False, config,
                                     tuple(args.set))  # fmt: skip
             res.save()
+        ref = _work(args, args.work / "dev", HEADLINE[0]) / scene.name
+        for label, r in runs.items():
+            work = _work(args, args.work / "dev", label) / scene.name
+            if (
+                "maps" not in r
+                and label != HEADLINE[0]
+                and ref.is_dir()
+                and work.is_dir()
+            ):
+                r["maps"] = map_agreement(ref, work)
+        res.save()
 
 
 # ------------------------------------------------------------------- report --
@@ -454,21 +479,24 @@ def report(res: Results) -> None:
               f"level agreement {s.get('level_agreement', 1):.2f} ({s.get('level_flips')} "
               f"pairs flip); score range {s.get('score_range_mean', 0):.3f}; "
               f"mask area max/min (median) {s.get('area_ratio_median', 0):.2f}")  # fmt: skip
-    attr = res.get("attribute", {})
-    if attr and demo:
-        base = demo[HEADLINE[0]]["miou"]
-        print("\nWhere the change grows (demo): the perturbation acting only after a "
-              f"stage; the reference ({HEADLINE[0]}) reads {base:.3f}")  # fmt: skip
+    for name, attr in res.get("attribute", {}).items():
+        runs = demo if name == "demo" else res.get("dev", {}).get(name, {})
+        if HEADLINE[0] not in runs:
+            continue
+        base = runs[HEADLINE[0]]["miou"]
+        print(f"\nWhere the change grows ({'the demo' if name == 'demo' else 'dev seed ' + name}): "
+              f"the perturbation acting only after a stage; {HEADLINE[0]} reads {base:.3f}")  # fmt: skip
         print("| perturbation | acts after | mIoU | Δ | map correlation | mask IoU |")
         print("|---|---|---|---|---|---|")
-        for label in (k for k in demo if k != HEADLINE[0]):
+        for label in (k for k in runs if k != HEADLINE[0]):
             rows = [(k.split("@")[1], r) for k, r in attr.items()
                     if k.split("@")[0] == label]  # fmt: skip
-            for stage, r in [*rows, ("(whole chain)", demo[label])]:
+            for stage, r in [*rows, ("(whole chain)", runs[label])]:
                 m = r.get("maps", {})
-                print(f"| {label} | {stage} | {r['miou']:.3f} | "
-                      f"{r['miou'] - base:+.3f} | {m.get('map_corr_median', float('nan')):.3f} | "
-                      f"{m.get('mask_iou_median', float('nan')):.2f} |")  # fmt: skip
+                corr, iou = m.get("map_corr_median"), m.get("mask_iou_median")
+                print(f"| {label} | {stage} | {r['miou']:.3f} | {r['miou'] - base:+.3f} | "
+                      f"{'–' if corr is None else f'{corr:.3f}'} | "
+                      f"{'–' if iou is None else f'{iou:.2f}'} |")  # fmt: skip
     dev = res.get("dev", {})
     per_seed = {k: scene_spread(v) for k, v in dev.items() if len(v) >= 2}
     if per_seed:
@@ -496,7 +524,7 @@ def report(res: Results) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument(
-        "--part", choices=("demo", "dev", "attribute"), nargs="*",
+        "--part", choices=("demo", "dev", "attribute", "attribute-dev"), nargs="*",
         default=["demo", "dev"],
     )  # fmt: skip
     ap.add_argument("--after", nargs="+", default=list(ATTRIBUTE_AFTER), choices=CHAIN,
@@ -543,6 +571,8 @@ def main() -> None:
             part_dev(args, res)
         if "attribute" in args.part:
             part_attribute(args, res)
+        if "attribute-dev" in args.part:
+            part_attribute(args, res, dev=True)
     report(res)
 
 
