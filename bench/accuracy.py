@@ -39,9 +39,9 @@ view, query) pair:
                       truth part masks as segments (the paper's SAM setting's bound)
   same-appearance-truth, select-random-truth   Table 4 on truth segments (one
                       appearance, random targets; compare with --base male-truth)
-  male-segment-once, male-segment-once-orig   the full method segmenting each
-                      view once (its self render, its photo) and cropping every
-                      image of it with those segments (extract-features.segment)
+  male-segment-each, male-segment-once-self   the full method segmenting every
+                      image of a view (the paper's), or the view once from its self
+                      render instead of its photo (extract-features.segment, _from)
   male-min-crop-16, male-min-crop-32   the full method without the segments
                       whose crop is under 16 / 32 px (extract-features.min_crop_px)
 
@@ -76,6 +76,7 @@ from common import ROOT, seed_list  # noqa: E402  (same folder)
 
 VERSION = 1  # bump when what a seed's results mean changes
 
+TRUTH_EACH = ["segmenter=truth", "segment=each"]  # each image's own truth parts
 # label -> (ptovs.variants name, extra --set items per stage); the order is the
 # order a seed computes them in (the full method's chain first: most reuse it)
 CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
@@ -105,10 +106,11 @@ CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
         )
     },
     "oracle": ("male", {}),  # + the clean features' import_dir (`import_features`)
-    # Table 3 rows with perfect segments: the synthetic truth's part masks
-    # (`segmenter = "truth"`: the paper's own SAM setting as an upper bound)
+    # Table 3 rows with perfect segments: the synthetic truth's part masks of each
+    # image (`segmenter = "truth"`, `segment = "each"`: the paper's own SAM setting
+    # as an upper bound)
     **{
-        f"{v}-truth": (v, {"extract-features": ["segmenter=truth"]})
+        f"{v}-truth": (v, {"extract-features": TRUTH_EACH})
         for v in ("male", "langsplat", "no-multi-appearance")
     },
 }
@@ -117,16 +119,16 @@ CHAIN_LABELS: dict[str, tuple[str, dict[str, list[str]]]] = {
 # difference is the selection's alone
 CHAIN_LABELS.update({
     f"{k}-truth": ("male", {"render-appearances": [item],
-                            "extract-features": ["segmenter=truth"]})
+                            "extract-features": TRUTH_EACH})
     for k, item in (("same-appearance", "targets=same"),
                     ("select-random", "selection=random"))
 })  # fmt: skip
-# extract-features' economies, each against `male`: one segmentation per view
-# (from the self render or the photo) and no crops under 16 or 32 px
+# extract-features' segments and economies, each against `male` (one segmentation
+# per view, from the photo): every image segmented (the paper's), one segmentation
+# from the self render, and no crops under 16 or 32 px
 CHAIN_LABELS.update({
-    "male-segment-once": ("male", {"extract-features": ["segment=once"]}),
-    "male-segment-once-orig": ("male", {"extract-features": [
-        "segment=once", "segment_from=orig"]}),
+    "male-segment-each": ("male", {"extract-features": ["segment=each"]}),
+    "male-segment-once-self": ("male", {"extract-features": ["segment_from=self"]}),
     **{f"male-min-crop-{px}": ("male", {"extract-features": [f"min_crop_px={px}"]})
        for px in (16, 32)},
 })  # fmt: skip
@@ -172,7 +174,7 @@ CHAIN_LABELS["no-multi-appearance-stable"] = (
 OPTIONAL_LABELS = (
     "no-uncertainty-ae", "lift-codes", "male-truth", "langsplat-truth",
     "no-multi-appearance-truth", "same-appearance-truth", "select-random-truth",
-    "male-segment-once", "male-segment-once-orig", "male-min-crop-16",
+    "male-segment-each", "male-segment-once-self", "male-min-crop-16",
     "male-min-crop-32", "auto", "plain", "gauss-3k", "gauss-5k", *STEADY_QUERY,
     "order-names", "names-stable", "no-multi-appearance-stable",
 )  # fmt: skip

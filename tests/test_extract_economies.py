@@ -71,7 +71,7 @@ def counting(monkeypatch):
 
 
 def test_segment_once_reuses_the_views_segments(work, tiny_scene_dir, counting):
-    each = _extract(work, tiny_scene_dir)  # the chain's own (cached) artifact
+    each = _extract(work, tiny_scene_dir, "segment=each")  # every image its own
     for source in ("self", "orig"):
         once = _extract(work, tiny_scene_dir, "segment=once", f"segment_from={source}")
         (seg,) = counting[-1:]
@@ -92,7 +92,7 @@ def test_segment_once_reuses_the_views_segments(work, tiny_scene_dir, counting):
 def test_segment_once_with_truth_segments(work, tiny_scene_dir, counting):
     """Truth segments of the source image: the photo's with its occluders, the
     self render's without, whatever image they crop."""
-    each = _extract(work, tiny_scene_dir, "segmenter=truth")
+    each = _extract(work, tiny_scene_dir, "segmenter=truth", "segment=each")
     assert counting[-1].selected.count(True) == len(each)  # the photos only
     for source, photo in (("self", False), ("orig", True)):
         once = _extract(

@@ -22,9 +22,10 @@ like that (`too_many_empty`) the segmenter is broken for these images (a random 
 wrong checkpoint, thresholds too strict, images too small): the stage stops with an
 error naming those causes and deletes its partial artifact.
 
-Economies: `segment = "once"` segments each view once (its self render, or its
-photo with `segment_from = "orig"`) and crops every image of the view with those
-segments, since the renders share the photo's camera; `min_crop_px` leaves out
+Segments: by default (`segment = "once"`) each view is segmented once, from its
+photo (`segment_from = "orig"`; "self": the self render), and every image of the
+view is cropped with those segments, since the renders share the photo's camera;
+`segment = "each"` (the paper's) segments every image. `min_crop_px` leaves out
 segments whose crop is too small for the encoder to read (their pixels are
 NO_SEGMENT at that level).
 
@@ -141,14 +142,16 @@ class Config:
     views first (`ptovs.fit.appearance_sensitivity`), else "orig+self"."""
     import_dir: str = ""
     """A LangSplat feature folder to read instead of segmenting and encoding."""
-    segment: Literal["each", "once"] = "each"
-    """"each": segment every image of a view; "once": segment one image of the
-    view (`segment_from`) and crop every image with its segments (the renders
-    share the photo's camera): one segmenter call per view instead of 2 + N."""
-    segment_from: Literal["self", "orig"] = "self"
-    """The image "once" segments: the self render (the photo's camera and
-    appearance without its transient occluders) or the original photo (also
-    when there are no renders)."""
+    segment: Literal["each", "once"] = "once"
+    """"once": segment one image of the view (`segment_from`) and crop every image
+    with its segments (the renders share the photo's camera): one segmenter call
+    per view instead of 2 + N, and every slot describes the same regions; "each":
+    segment every image of a view (the paper's), so a render that moves a little
+    can move its segments a lot."""
+    segment_from: Literal["self", "orig"] = "orig"
+    """The image "once" segments: the original photo (no reconstruction, float
+    path or seed moves it; also used when there are no renders) or the self
+    render (the photo's camera and appearance without its transient occluders)."""
     min_crop_px: int = 0
     """Leave out segments whose crop (the longer side of the mask's bounding box,
     in pixels of the image) is shorter than this: no row is encoded and their
