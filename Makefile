@@ -187,8 +187,9 @@ bench-speed-error: setup
 
 # stability: the answers a user reads when the input moves by what no user would notice
 # (the photos re-saved as JPEG 95, torch's float paths moved, the chain's seeds changed),
-# each run in its own work folder: the demo scene under every perturbation, then the
-# accuracy instrument's dev seeds (STAB_SEEDS; about 10 min a seed, not timed whole)
+# each run in its own work folder: the demo scene under every perturbation, the
+# accuracy instrument's dev seeds (STAB_SEEDS; about 6 min a seed, not timed whole),
+# then the demo's perturbations made only after a stage (where the change grows)
 STAB_SEEDS ?= 0-8
 bench-stability: setup
 	$(BIN)/python bench/stability.py --seeds $(STAB_SEEDS) --data $(QDATA)/stability \

@@ -156,6 +156,8 @@ CHAIN_LABELS.update({
 # are shared): a soft level choice, a robust peak, the cut where the area is steadiest
 STEADY_QUERY = {
     "level-soft": ["level_softness=0.02"],
+    "level-soft-05": ["level_softness=0.05"],
+    "level-soft-10": ["level_softness=0.1"],
     "peak-q": ["peak_quantile=0.995"],
     "thr-stable": ["threshold_mode=stable"],
 }

@@ -1,6 +1,6 @@
 """Stability: the answers a user reads when the input moves by what no user would notice.
 
-    make bench-stability                               # the demo, then the dev seeds
+    make bench-stability                               # the demo, the dev seeds, where it grows
     python bench/stability.py --part demo              # the demo scene alone
     python bench/stability.py --part dev --seeds 0-8   # the accuracy instrument's dev seeds
     python bench/stability.py --part attribute         # which stage turns a small change large
@@ -525,7 +525,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument(
         "--part", choices=("demo", "dev", "attribute", "attribute-dev"), nargs="*",
-        default=["demo", "dev"],
+        default=["demo", "dev", "attribute"],
     )  # fmt: skip
     ap.add_argument("--after", nargs="+", default=list(ATTRIBUTE_AFTER), choices=CHAIN,
                     help="attribute: the stages after which the perturbation acts")  # fmt: skip
