@@ -371,9 +371,11 @@ def part_demo(args: argparse.Namespace, res: Results) -> None:
 def part_attribute(args: argparse.Namespace, res: Results, dev: bool = False) -> None:
     """The perturbations that leave the photos alone, each acting only after each
     stage of `--after` (the reference's chain linked up to it): on the demo, or
-    (`dev`) on each dev seed of `--seeds` whose reference chain `--part dev` made."""
+    (`dev`) on each dev seed of `--seeds` whose reference chain `--part dev` made
+    (under `--set`s, the reference is that rule's chain and every run keeps them)."""
+    suffix = f"+{args.name}" if args.set else ""  # a --set rule's own chains
     if dev:
-        ref = args.work / "dev" / HEADLINE[0]
+        ref = args.work / "dev" / (HEADLINE[0] + suffix)
         config, text, labels = (
             str(ROOT / "configs" / "accuracy.toml"),
             None,
@@ -381,7 +383,7 @@ def part_attribute(args: argparse.Namespace, res: Results, dev: bool = False) ->
         )
         scenes = {str(s): args.acc_data / f"small_s{s}" for s in seed_list(args.seeds)}
     else:
-        ref = args.work / "demo" / HEADLINE[0]
+        ref = args.work / "demo" / (HEADLINE[0] + suffix)
         config, text, labels = DEMO_CONFIG, args.text, args.demo_perturbations
         scenes = {"demo": args.data / "demo" / "demo_s0"}
     for name, scene in scenes.items():
@@ -397,11 +399,10 @@ def part_attribute(args: argparse.Namespace, res: Results, dev: bool = False) ->
                 if key in attr:
                     continue
                 print(f"{name} {label}, after {stage} ...", flush=True)
-                work = seeded_work(ref, args.work / "attribute" / name / key,
+                work = seeded_work(ref, args.work / "attribute" / name / (key + suffix),
                                    CHAIN[: CHAIN.index(stage) + 1])  # fmt: skip
-                attr[key] = run_scene(
-                    label, scene, work, text, False, config, after=stage
-                )
+                attr[key] = run_scene(label, scene, work, text, False, config,
+                                      tuple(args.set), after=stage)  # fmt: skip
                 attr[key]["maps"] = map_agreement(ref / scene.name, work / scene.name)
                 res.save()
 

@@ -183,3 +183,43 @@ def test_equal_maps_cut_otherwise_show_as_masks_not_maps(
     cut = st.map_agreement(a / scene, b / scene)
     assert cut["map_corr_median"] == pytest.approx(1.0)  # the same maps ...
     assert cut["mask_iou_median"] < 0.9  # ... cut lower: larger masks
+
+
+def test_attribution_runs_each_change_after_each_stage(st, monkeypatch, tmp_path):
+    import argparse
+
+    calls = []
+
+    def fake_run(label, scene, work, text, style, config, extra=(), after=None):
+        calls.append((label, work.name, extra, after))
+        return {"miou": 0.5}
+
+    monkeypatch.setattr(st, "run_scene", fake_run)
+    monkeypatch.setattr(st, "map_agreement", lambda ref, work: {"pairs": 1})
+    (tmp_path / "work" / "demo" / "t2+rule" / "demo_s0" / "reconstruct").mkdir(
+        parents=True
+    )
+    args = argparse.Namespace(
+        work=tmp_path / "work", data=tmp_path / "data", text="Minaret",
+        demo_perturbations=["t2", "jpeg95", "floats", "seed1"],
+        after=["reconstruct", "train-ae"], set=["query.threshold=0.5"], name="rule",
+    )  # fmt: skip
+
+    class Res(dict):
+        def save(self):
+            pass
+
+    res = Res()
+    st.part_attribute(args, res)
+    # the reference and a re-save are not attributed; each run keeps the rule
+    assert [(c[0], c[3]) for c in calls] == [
+        ("floats", "reconstruct"), ("floats", "train-ae"),
+        ("seed1", "reconstruct"), ("seed1", "train-ae"),
+    ]  # fmt: skip
+    assert all(c[2] == ("query.threshold=0.5",) for c in calls)
+    assert calls[0][1] == "floats@reconstruct+rule"
+    assert set(res["attribute"]["demo"]) == {
+        "floats@reconstruct", "floats@train-ae", "seed1@reconstruct", "seed1@train-ae",
+    }  # fmt: skip
+    st.part_attribute(args, res)  # finished runs are kept, not rerun
+    assert len(calls) == 4
