@@ -63,6 +63,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import ROOT, Results, seed_list  # noqa: E402  (same folder)
 
+from ptovs.registry import stages_between  # noqa: E402  (light: no torch)
+
 AVX2_ENV = {
     "ATEN_CPU_CAPABILITY": "avx2",
     "ONEDNN_MAX_CPU_ISA": "AVX2",
@@ -219,9 +221,7 @@ def resaved(scene: Path, root: Path, quality: int) -> Path:
     return dst
 
 
-# the stages before the answers, in the chain's order
-CHAIN = ("reconstruct", "render-appearances", "extract-features", "uncertainty",
-         "train-ae", "train-male")  # fmt: skip
+CHAIN = stages_between("reconstruct", "train-male")  # the stages before the answers
 ATTRIBUTE_AFTER = ("reconstruct", "extract-features", "train-ae")
 
 
@@ -336,6 +336,16 @@ def map_agreement(ref: Path, work: Path) -> dict:
     }
 
 
+def compare_maps(args: argparse.Namespace, root: Path, runs: dict, scene: str) -> None:
+    """Adds `map_agreement` against the reference to each finished run of `runs`
+    (the perturbations' work folders under `root`) that lacks it."""
+    ref = _work(args, root, HEADLINE[0]) / scene
+    for label, r in runs.items():
+        work = _work(args, root, label) / scene
+        if "maps" not in r and label != HEADLINE[0] and ref.is_dir() and work.is_dir():
+            r["maps"] = map_agreement(ref, work)
+
+
 # -------------------------------------------------------------------- parts --
 def _work(args: argparse.Namespace, root: Path, label: str) -> Path:
     """The perturbation's work folder; under `--set`s (`--name`) a folder of its
@@ -360,11 +370,7 @@ def part_demo(args: argparse.Namespace, res: Results) -> None:
         demo[label] = run_scene(label, scene, work, args.text, True, DEMO_CONFIG,
                                 tuple(args.set))  # fmt: skip
         res.save()
-    ref = _work(args, args.work / "demo", HEADLINE[0]) / scene.name
-    for label, r in demo.items():
-        work = _work(args, args.work / "demo", label) / scene.name
-        if "maps" not in r and label != HEADLINE[0] and ref.is_dir() and work.is_dir():
-            r["maps"] = map_agreement(ref, work)
+    compare_maps(args, args.work / "demo", demo, scene.name)
     res.save()
 
 
@@ -424,16 +430,7 @@ def part_dev(args: argparse.Namespace, res: Results) -> None:
             runs[label] = run_scene(label, scene, work, None, False, config,
                                     tuple(args.set))  # fmt: skip
             res.save()
-        ref = _work(args, args.work / "dev", HEADLINE[0]) / scene.name
-        for label, r in runs.items():
-            work = _work(args, args.work / "dev", label) / scene.name
-            if (
-                "maps" not in r
-                and label != HEADLINE[0]
-                and ref.is_dir()
-                and work.is_dir()
-            ):
-                r["maps"] = map_agreement(ref, work)
+        compare_maps(args, args.work / "dev", runs, scene.name)
         res.save()
 
 
