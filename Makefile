@@ -3,13 +3,12 @@
 #   make view          after make demo: roam the demo scene and ask it things in the browser (open the printed URL)
 #   make test          the test suite (what CI runs)
 #   make bench         the rasterizer, each stage on bench scenes, the real photo sets,
-#                      then bench-growth (and bench-peers given OPENSPLAT_SRC)
+#                      then bench-growth
 #   make bench-accuracy  the accuracy instrument: 18 seeds, every variant, CIs (~2 h)
 #   make bench-standin   the stand-in's failure profile against CLIP's (calibration seeds)
 #   make bench-multiapp  the paper's multi-appearance claim in stand-in 5's world (fresh seeds)
 #   make bench-real-chain  the real-class chain end to end, 100 landmark photos (~1.5 h)
 #   make bench-growth  each stage's time, memory and quality at 100-763 photos (landmark)
-#   make bench-peers OPENSPLAT_SRC=DIR  reconstruct beside OpenSplat --cpu (a clone you give)
 #   make -j3 all       every scene under DATA in parallel, stages in order, then the
 #                      per-scene table (a failing scene is marked, the others go on)
 #   make cluster       the same through Snakemake: PROFILE=local (default) or slurm
@@ -64,7 +63,7 @@ DEMO_CONFIG ?= configs/demo.toml
 DEMO_TEXT   ?= Minaret
 DEMO := $(PTOVS_BIN) --work-dir $(QWORK) --config $(call q,$(DEMO_CONFIG))
 
-.PHONY: setup demo pictures view test system-deps test-slurm lint format bench bench-accuracy bench-speed-error bench-stability bench-encoders bench-real-chain bench-standin bench-multiapp bench-growth bench-peers check-readme all cluster scenes table status clean-work $(SCENES)
+.PHONY: setup demo pictures view test system-deps test-slurm lint format bench bench-accuracy bench-speed-error bench-stability bench-encoders bench-real-chain bench-standin bench-multiapp bench-growth check-readme all cluster scenes table status clean-work $(SCENES)
 
 # where torch and torchvision come from: PyTorch's CPU index by default (PyPI's Linux
 # torch is the CUDA build, several GB); with an NVIDIA GPU give its CUDA index, e.g.
@@ -146,23 +145,6 @@ bench: setup
 	$(BIN)/python bench/segment_pictures.py $(REAL)/herzjesu_p8/images/0004.jpg --out docs/img/segments_herzjesu.jpg
 	$(BIN)/python bench/segment_pictures.py $(REAL)/fountain_p11/images/0005.jpg --out docs/img/segments_fountain.jpg
 	$(MAKE) bench-growth
-	@if [ -n "$(OPENSPLAT_SRC)" ]; then $(MAKE) bench-peers; else \
-	  echo "bench-peers not run: give OPENSPLAT_SRC=DIR (a clone of pierotofy/OpenSplat)"; fi
-
-# reconstruct beside OpenSplat on the CPU, PEERS_ITERATIONS steps each, then ptovs's
-# time to OpenSplat's best held-out PSNR: OpenSplat is built from the source tree you
-# give, never vendored (AGPL-3.0); OPENSPLAT_DEPS=DIR holds its CMake downloads
-# (nlohmann_json, nanoflann, cxxopts) for a machine without a network. Needs OpenCV's
-# C++ headers (Debian: apt install libopencv-dev) and a compiler.
-OPENSPLAT_SRC  ?=
-OPENSPLAT_DEPS ?=
-PEERS_ITERATIONS ?= 500
-bench-peers: setup
-	@test -n "$(OPENSPLAT_SRC)" || { echo "bench-peers: give OPENSPLAT_SRC=DIR, a clone \
-	of https://github.com/pierotofy/OpenSplat"; exit 2; }
-	$(BIN)/python bench/peers.py --opensplat-src $(call q,$(OPENSPLAT_SRC)) \
-	  $(if $(OPENSPLAT_DEPS),--fetchcontent $(call q,$(OPENSPLAT_DEPS))) \
-	  --real $(REAL) --work $(QWORK)/peers --iterations $(PEERS_ITERATIONS)
 
 # the accuracy instrument: ACC_SEEDS seeds of the `small` preset, every
 # variant, ceilings, cluster-bootstrap CIs; dev = the first half of the seeds, test
@@ -171,9 +153,6 @@ ACC_SEEDS ?= 0-17
 bench-accuracy: setup
 	$(BIN)/python bench/accuracy.py --preset small --seeds $(ACC_SEEDS) \
 	  --data $(QDATA)/accuracy --work $(QWORK)/accuracy
-	$(BIN)/python bench/select3d.py --seeds 0-8 --data $(QDATA)/accuracy --work $(QWORK)/accuracy
-	$(BIN)/python bench/select3d.py --seeds 9-17 --data $(QDATA)/accuracy --work $(QWORK)/accuracy
-	$(BIN)/python bench/style_seeds.py --seeds $(ACC_SEEDS) --data $(QDATA)/accuracy --work $(QWORK)/accuracy
 
 # speed against error, one front per question: every recipe's whole chain against
 # mIoU (the accuracy instrument: dev seeds 0-8 choose, test seeds 9-17 report) and
@@ -215,20 +194,12 @@ bench-multiapp: setup
 	  --data $(QDATA)/accuracy-v5 --work $(QWORK)/accuracy-v5 \
 	  --labels $(MULTIAPP_LABELS) --base male-truth
 
-# real-class encoders and segmenters on 2 cores, random weights (docs/results.md, "Real
-# encoders on a CPU"): crops/s of each encoder in fp32 and bf16, and by runtime at 1
-# and 2 threads; a view's work on a landmark's photos (segmenters, distinct crops,
-# encoders) and the hours at 763 photos; SAM 2.1 and SAM's split between image
-# encoder and point decoding; the crops that min_crop_px would leave out
+# real-class encoders on 2 cores, random weights (docs/results.md, "Real encoders on a
+# CPU"): crops/s of each encoder in fp32 and bf16, and by runtime at 1 and 2 threads
 bench-encoders: setup
 	$(BIN)/python bench/encoders.py --out $(QWORK)/encoders.json
 	$(BIN)/python bench/encoders.py --runtimes --models MobileCLIP2-S0 ViT-B-16 --crops 96 \
 	  --out $(QWORK)/runtimes.json
-	$(BIN)/python bench/real_extract.py --photos 3 --data $(QWORK)/real_extract \
-	  --out $(QWORK)/real_extract.json
-	$(BIN)/python bench/segmenters.py --out $(QWORK)/segmenters.json
-	$(BIN)/python bench/economies.py --data $(QDATA)/econ --preset landmark --seed 0 \
-	  --photos 20 --views 6 --out $(QWORK)/econ/landmark_s0.json
 
 # the real-class chain end to end (random-weight MobileCLIP2-S0, hier; full method and
 # photo alone, photos to query and select, each stage in its own process) on 200

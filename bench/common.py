@@ -1,6 +1,6 @@
 """What the bench scripts share: the repository root, the bench scenes, `ptovs` in a
 fresh process, the results file every script keeps, camera pose errors, a chain's
-stages run one process each (bench/growth.py), and the raw-encoder style vote.
+stages run one process each (bench/growth.py, bench/real_chain.py).
 
     from common import ROOT, Results, bench_scene, run_ptovs   # (bench/ is on sys.path)
     from common import seed_list                                 # "0-17" "20" -> seeds
@@ -111,18 +111,6 @@ def seed_list(items: list[str]) -> list[int]:
         a, _, b = it.partition("-")
         out += list(range(int(a), int(b) + 1)) if b else [int(a)]
     return list(dict.fromkeys(out))
-
-
-def instrument_chain(scene: Path, work: Path, config: Path, variant: str = "male"):
-    """The accuracy instrument's chain of `variant` on `scene` (bench/accuracy.py's
-    layout: artifacts under <work>/runs, its config file). Its keys say whether a
-    result measured earlier still describes today's code and config."""
-    from ptovs.config import load_config
-    from ptovs.stage import Chain, RunContext, resolve_scene
-    from ptovs.variants import variant_sets
-
-    ctx = RunContext(work / "runs", load_config(config))
-    return Chain(ctx, resolve_scene(ctx, None, scene), variant_sets(variant))
 
 
 def camera_pose(cam_from_world) -> tuple:
@@ -294,38 +282,3 @@ def thread_env(n: int) -> dict:
     env = {k: v for k, v in os.environ.items() if k != "PTOVS_THREADS"}
     env["OMP_NUM_THREADS"] = str(n)
     return env
-
-
-# ---------------------------------------------------------------- style
-
-
-def raw_style_votes(scene: Path, names: list[str]) -> dict:
-    """The authors' raw-CLIP baseline with the stand-in encoder: each view's whole
-    photo (and, for reference, the landmark alone under its truth mask) votes for
-    the style text with the highest cosine."""
-    import cv2
-    import numpy as np
-
-    from ptovs.encoders import prepare_crop
-    from ptovs.encoders.synthetic import SyntheticEncoder
-
-    enc = SyntheticEncoder.from_scene(scene)
-    text = enc.encode_texts(enc.styles)
-    votes = {
-        "whole": dict.fromkeys(enc.styles, 0),
-        "landmark": dict.fromkeys(enc.styles, 0),
-    }
-    for name in names:
-        stem = Path(name).stem
-        img = (
-            cv2.imread(str(scene / "dense/images" / name))[..., ::-1].astype(np.float32)
-            / 255
-        )
-        part = np.load(scene / "synthetic/truth" / f"{stem}.npz")["part_id"]
-        crops = np.stack(
-            [prepare_crop(img, np.ones(part.shape, bool)), prepare_crop(img, part >= 0)]
-        )
-        best = (enc.encode_images(crops) @ text.T).argmax(1)
-        votes["whole"][enc.styles[best[0]]] += 1
-        votes["landmark"][enc.styles[best[1]]] += 1
-    return votes
