@@ -202,7 +202,7 @@ def test_store_writes_never_follow_a_planted_link(tmp_path: Path):
 
     import torch
 
-    from ptovs.artifacts import Checkpoint
+    from ptovs.checkpoint import Checkpoint
     from ptovs.keys import fingerprint_files
 
     victim = tmp_path / "victim"

@@ -9,7 +9,8 @@ import numpy as np
 import torch
 from click.testing import CliRunner
 
-from ptovs.artifacts import Checkpoint, Store
+from ptovs.artifacts import Store
+from ptovs.checkpoint import Checkpoint
 from ptovs.registry import scene_input
 from ptovs.stage import stage_command
 

@@ -29,7 +29,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ptovs.artifacts import Checkpoint, json_dataset
+from ptovs.artifacts import json_dataset
+from ptovs.checkpoint import Checkpoint
 from ptovs.field.losses import psnr
 from ptovs.field.render import WildField
 from ptovs.field.train import train, visibility

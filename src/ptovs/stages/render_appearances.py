@@ -22,7 +22,8 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from ptovs.artifacts import Artifact, Checkpoint, json_dataset
+from ptovs.artifacts import Artifact, json_dataset
+from ptovs.checkpoint import Checkpoint
 from ptovs.field.appearance import (
     ORDERS,
     QUALITY_METRICS,

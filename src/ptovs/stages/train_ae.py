@@ -44,7 +44,8 @@ import torch
 from torch.nn import functional as F  # noqa: N812
 from tqdm import tqdm
 
-from ptovs.artifacts import Artifact, Checkpoint, json_dataset, read_json_dataset
+from ptovs.artifacts import Artifact, json_dataset, read_json_dataset
+from ptovs.checkpoint import Checkpoint
 from ptovs.nets.autoencoder import LanguageAE
 from ptovs.registry import upstream
 from ptovs.stage import stage_command

@@ -55,7 +55,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ptovs.artifacts import Artifact, Checkpoint, json_dataset, read_json_dataset
+from ptovs.artifacts import Artifact, json_dataset, read_json_dataset
+from ptovs.checkpoint import Checkpoint
 from ptovs.field.language import (
     CODE_DIM,
     MaleConfig,

@@ -30,7 +30,8 @@ from typing import Literal
 
 import numpy as np
 
-from ptovs.artifacts import Artifact, Checkpoint, json_dataset
+from ptovs.artifacts import Artifact, json_dataset
+from ptovs.checkpoint import Checkpoint
 from ptovs.features import SegmentFeatures, tuple_ids, view_apps
 from ptovs.registry import upstream
 from ptovs.stage import stage_command
