@@ -6,7 +6,6 @@
 From a finished demo work folder (`make demo`: the query, evaluate, select and style
 outputs must be there), into --docs (docs/img):
   demo_overlay.png  one view's heatmap | overlay per query, enlarged 2x
-                    (bench/demo_picture.py's picture)
   select.png        a labelled photo, the field rendered at its camera, and the
                     Gaussians --text selects rendered alone, enlarged 2x
   style_votes.png   the first voting view's style panel (`ptovs style`'s own)
@@ -39,9 +38,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import ROOT  # noqa: E402  (same folder)
-from demo_picture import compose  # noqa: E402
 
 VIEWPORT = {"width": 1000, "height": 700}
+GAP = 2  # white pixels between the overlay picture's panels, before the enlargement
 
 
 # the panel's phrase box (viser's mantine layout: the input beside the "Phrase" label)
@@ -62,6 +61,37 @@ def _write(path: Path, rgb: np.ndarray) -> None:
 
     path.parent.mkdir(parents=True, exist_ok=True)
     write_png(path, rgb)
+
+
+def _pad(img: np.ndarray, width: int) -> np.ndarray:
+    extra = width - img.shape[1]
+    return np.pad(img, ((0, 0), (0, extra), (0, 0)), constant_values=255)
+
+
+def compose(view_dir: Path, scale: int = 3) -> np.ndarray:
+    """Rows [heatmap | overlay] for every query of one view, white between."""
+    import cv2
+
+    rows = []
+    for heat in sorted(view_dir.glob("*_heatmap.png")):
+        over = heat.with_name(heat.name.replace("_heatmap", "_overlay"))
+        a, b = cv2.imread(str(heat)), cv2.imread(str(over))
+        if a is None or b is None:
+            raise SystemExit(f"cannot read {heat} or {over}: rerun `make demo`")
+        h = max(a.shape[0], b.shape[0])
+        a, b = (np.pad(x, ((0, h - x.shape[0]), (0, 0), (0, 0)), constant_values=255)
+                for x in (a, b))  # fmt: skip
+        rows.append(np.hstack([a, np.full((h, GAP, 3), 255, np.uint8), b]))
+    if not rows:
+        raise SystemExit(f"no *_heatmap.png in {view_dir}: run `make demo` first")
+    width = max(r.shape[1] for r in rows)
+    out = []
+    for i, r in enumerate(rows):
+        if i:
+            out.append(np.full((GAP, width, 3), 255, np.uint8))
+        out.append(_pad(r, width))
+    pic = np.vstack(out)
+    return cv2.resize(pic, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
 
 
 def overlay_picture(work: Path, scene: str, docs: Path) -> dict:
