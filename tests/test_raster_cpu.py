@@ -19,7 +19,7 @@ import pytest
 import torch
 
 from conftest import has_compiler, need_system
-from ptovs.raster import _common, _reference
+from ptovs.raster import _common, _reference, _team
 
 need_system("g++", has_compiler(), module=True)  # else the kernel cannot be built
 
@@ -914,16 +914,16 @@ def test_nondeterministic_leaves_torch_its_threads(tmp_path):
         r = CliRunner().invoke(main, ["--work-dir", str(tmp_path), "--threads", "3",
                                       "synth-scene", "--nondeterministic", "--help"])  # fmt: skip
         assert r.exit_code == 0, r.output
-        assert not _cpu.deterministic() and provenance()["deterministic"] == "False"
-        with _cpu.kernels_only_parallel():
-            assert (torch.get_num_threads(), _cpu.threads()) == (3, 3)
+        assert not _team.deterministic() and provenance()["deterministic"] == "False"
+        with _team.kernels_only_parallel():
+            assert (torch.get_num_threads(), _team.threads()) == (3, 3)
         r = CliRunner().invoke(
             main, ["--work-dir", str(tmp_path), "synth-scene", "--help"]
         )
         assert r.exit_code == 0, r.output
-        assert _cpu.deterministic() and provenance()["deterministic"] == "True"
+        assert _team.deterministic() and provenance()["deterministic"] == "True"
     finally:
-        _cpu.set_deterministic(True)
+        _team.set_deterministic(True)
         torch.set_num_threads(before)
 
 
@@ -933,13 +933,13 @@ def test_kernels_only_parallel_keeps_the_team_and_restores():
     before = torch.get_num_threads()
     try:
         torch.set_num_threads(3)
-        with pytest.raises(RuntimeError, match="boom"), _cpu.kernels_only_parallel():
+        with pytest.raises(RuntimeError, match="boom"), _team.kernels_only_parallel():
             assert torch.get_num_threads() == 1
-            assert _cpu.threads() == 3
-            with _cpu.kernels_only_parallel():  # nested: the same team
-                assert (torch.get_num_threads(), _cpu.threads()) == (1, 3)
-            assert (torch.get_num_threads(), _cpu.threads()) == (1, 3)
+            assert _team.threads() == 3
+            with _team.kernels_only_parallel():  # nested: the same team
+                assert (torch.get_num_threads(), _team.threads()) == (1, 3)
+            assert (torch.get_num_threads(), _team.threads()) == (1, 3)
             raise RuntimeError("boom")
-        assert (torch.get_num_threads(), _cpu.threads()) == (3, 3)
+        assert (torch.get_num_threads(), _team.threads()) == (3, 3)
     finally:
         torch.set_num_threads(before)

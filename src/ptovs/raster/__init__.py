@@ -19,6 +19,7 @@ This file is the package's face; the modules behind it are private to the packag
 - `_common`: Camera, Gaussians, projection, tile binning, constants
 - `_reference`: the pure-PyTorch compositing (the oracle, float64-capable)
 - `_cpu`: the compiled C++ kernel (built on first use) and its autograd glue
+- `_team`: the kernels' thread count, `kernels_only_parallel`, `set_deterministic`
 - `_backends`: which backends exist, work here, and which one a call gets
 - `_render`: `render` and its one-time input validation
 - `_blend`: frozen-geometry blend weights as sparse matrices (docs/rasterizer.md §9)
@@ -30,9 +31,9 @@ from __future__ import annotations
 from ptovs.raster._backends import available_backends
 from ptovs.raster._blend import BlendWeights, blend_weights, csr_matmul
 from ptovs.raster._common import Camera, Gaussians
-from ptovs.raster._cpu import deterministic, kernels_only_parallel, set_deterministic
 from ptovs.raster._render import RenderOutput, render
 from ptovs.raster._sh import SH_C0, eval_sh
+from ptovs.raster._team import deterministic, kernels_only_parallel, set_deterministic
 
 __all__ = [
     "SH_C0",

@@ -2,7 +2,8 @@
 
 The maths: docs/rasterizer.md §1–§4 and §9.
 
-The kernel is built and loaded on first use by `_cpu_build`.
+The kernel is built and loaded on first use by `_cpu_build`; its OpenMP team
+(`threads()`) is set in `_team`.
 
 Entry points:
 - `available()`: builds (once) and reports whether the kernel can be used.
@@ -18,8 +19,6 @@ Entry points:
 from __future__ import annotations
 
 import ctypes
-from collections.abc import Iterator
-from contextlib import contextmanager
 
 import torch
 from torch import Tensor
@@ -28,55 +27,7 @@ from torch.autograd.function import once_differentiable
 from ptovs.raster import _common
 from ptovs.raster._common import FOV_MARGIN, Camera, Gaussians, Isect, Projected
 from ptovs.raster._cpu_build import load
-
-_team: int | None = None  # the kernels' thread count inside `kernels_only_parallel`
-_serial_torch = (
-    True  # inside it, torch's own operations on one thread (`--deterministic`)
-)
-
-
-def threads() -> int:
-    """The compiled kernels' OpenMP team: torch's thread count, or inside
-    `kernels_only_parallel` the count it was entered with."""
-    return _team or torch.get_num_threads()
-
-
-def set_deterministic(same_bits: bool) -> None:
-    """Whether `kernels_only_parallel` runs torch's operations on one thread (True,
-    the default: the same field at any thread count) or leaves them on every thread
-    (False: faster on many cores, reproducible per thread count only). `ptovs
-    --deterministic/--nondeterministic` sets it for a command."""
-    global _serial_torch
-    _serial_torch = bool(same_bits)
-
-
-def deterministic() -> bool:
-    """The setting of `set_deterministic`."""
-    return _serial_torch
-
-
-@contextmanager
-def kernels_only_parallel() -> Iterator[None]:
-    """Torch's own operations on one thread, the compiled kernels on all of torch's.
-
-    The kernels give the same bits at any thread count (their sums run in fixed
-    slices); MKL's matrix products and oneDNN's convolutions do not (a weight
-    gradient's long sum is split by thread, in a shape-dependent way). Training
-    under this context is therefore the same at 1 or 16 threads: `--threads` changes
-    the time, not the field. Torch's share of a step is the small networks, the
-    losses and Adam: on 2 threads it costs reconstruct 1.26-1.45x, on 16 threads
-    2.7x (docs/results.md, "Threads"). After `set_deterministic(False)` torch keeps
-    every thread here; only the kernels' team is fixed."""
-    global _team
-    outer, before = torch.get_num_threads(), _team
-    _team = threads()
-    if _serial_torch:
-        torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(outer)
-        _team = before
+from ptovs.raster._team import threads
 
 
 def available() -> bool:

@@ -49,6 +49,7 @@ from ptovs.checkpoint import Checkpoint
 from ptovs.nets.autoencoder import LanguageAE
 from ptovs.registry import upstream
 from ptovs.stage import stage_command
+from ptovs.threads import torch_threads
 
 log = logging.getLogger(__name__)
 
@@ -263,12 +264,8 @@ def train_ae(
     for torch's intra-op threads, whose hand-offs cost more than they save (and
     far more when another process holds the other core).
     """
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
+    with torch_threads(1):
         return _train_ae(s, config, ckpt, desc)
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _train_ae(
