@@ -1,8 +1,8 @@
 """The chain and its execution: one scene's stages keyed, cached and run.
 
-A `Chain` computes every stage's config (the `ptovs` group's config plus the
-command's `--set` items) and content key (stage name, VERSION, config and the
-upstream keys; the scene's key covers its files) once, before any work.
+A `Chain` receives a scene's resolved settings (`ptovs.settings`) and computes
+every stage's config from them and its content key (stage name, VERSION, config
+and the upstream keys; the scene's key covers its files) once, before any work.
 `execute` runs one stage into a resumable artifact, or returns the cached one;
 `run_stages` runs several in order after their preflight checks.
 
@@ -33,102 +33,22 @@ import logging
 import os
 import time
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import click
 from tqdm import tqdm
 
-from ptovs import fit
-from ptovs.artifacts import (
-    Artifact,
-    ArtifactWriter,
-    Store,
-    provenance,
-    read_json_dataset,
-)
-from ptovs.config import build_config, canonical_json, merge, parse_sets
+from ptovs.artifacts import Artifact, ArtifactWriter, provenance, read_json_dataset
+from ptovs.config import canonical_json
 from ptovs.errors import MissingInputError, UselessOutputError
 from ptovs.keys import artifact_key, fingerprint_files, model_file_deps
 from ptovs.pipeline import PIPELINE
 from ptovs.progress import Ticker
 from ptovs.registry import SCENE, SCENE_VERSION, SceneConfig, get_stage
+from ptovs.settings import RunContext, Settings
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class RunContext:
-    """What the `ptovs` group resolved: shared by every subcommand of one call."""
-
-    work_dir: Path
-    config: dict[str, Any] = field(default_factory=dict)
-    force: bool = False
-    given: Any = None
-    """The group's --config file and --set items (`ptovs.scene_config.GivenConfig`):
-    a scene's config is recorded from them, or, without --config, the recorded
-    one is used (`for_scene`). None (scripts): `config` is used as it is."""
-    overrides: dict[str, Any] = field(default_factory=dict)
-    """A command's own options over the config (`with_overrides`): they stay on
-    top of a scene's recorded config too."""
-    advice: str = ""
-    """The group's options to repeat in the commands this context advises
-    (`Chain.hint`): `--config A --set X=1 `, or "" where none were given."""
-    _scenes: dict[str, RunContext] = field(default_factory=dict, repr=False)
-    _commands: dict[tuple, RunContext] = field(default_factory=dict, repr=False)
-
-    def __post_init__(self) -> None:
-        if self.given is not None and not self.advice:
-            origin = (
-                self.given.origin() if (self.given.files or self.given.sets) else ""
-            )
-            self.advice = f"{origin} " if origin else ""
-
-    @property
-    def store(self) -> Store:
-        return Store(self.work_dir)
-
-    def with_overrides(self, over: dict[str, Any]) -> RunContext:
-        """This context with a command's own config values on top."""
-        return RunContext(self.work_dir, merge(self.config, over), self.force,
-                          self.given, merge(self.overrides, over),
-                          self.advice)  # fmt: skip
-
-    def with_command(self, name: str, items: Iterable[str]) -> RunContext:
-        """This context for command `name` with its own --set items
-        (SECTION.KEY=VALUE): they are recorded with the scene's settings
-        (`ptovs.scene_config`). The same context for the same command and items."""
-        if self.given is None:
-            return self
-        key = (name, tuple(items))
-        if key not in self._commands:
-            self._commands[key] = RunContext(
-                self.work_dir, self.config, self.force,
-                self.given.with_command(name, key[1]), self.overrides, self.advice,
-            )  # fmt: skip
-        return self._commands[key]
-
-    def for_scene(self, scene: str) -> RunContext:
-        """The context for one scene: without --config, the settings recorded for
-        it (`ptovs.scene_config`), said in one line; with --config, those files.
-        The command's settings are recorded for the scene once its checks pass.
-        Once per scene."""
-        if self.given is None:
-            return self
-        if scene not in self._scenes:
-            from ptovs.scene_config import scene_config
-
-            config = scene_config(self.work_dir, scene, self.given, self.config,
-                                  self.overrides)  # fmt: skip
-            self._scenes[scene] = RunContext(
-                self.work_dir, config, self.force, None, self.overrides, self.advice
-            )
-        return self._scenes[scene]
-
-    def section(self, name: str, sets: Iterable[str] = ()) -> dict[str, Any]:
-        """Config section `name` with this command's `--set` items applied."""
-        return merge(self.config.get(name, {}), parse_sets(sets, name).get(name, {}))
 
 
 class SceneRef:
@@ -192,25 +112,32 @@ class Chain:
 
     def __init__(
         self,
-        ctx: RunContext,
+        settings: Settings | RunContext,
         scene: SceneRef,
         sets: Mapping[str, Iterable[str]] | None = None,
     ):
-        self.ctx = ctx.for_scene(scene.name)
+        """`settings`: the scene's (`ptovs.settings.resolve_settings`; a script's
+        `RunContext` is resolved here). `sets`: a recipe's KEY=VALUE items per
+        stage (`ptovs.variants`), applied before the settings' own --set items."""
+        if isinstance(settings, RunContext):
+            settings = settings.for_scene(scene.name)
+        self.settings = settings
         self.scene = scene
         self.sets = dict(sets or {})
         self._keys: dict[str, str] = {}
         self._configs: dict[str, Any] = {}
         self._deps: dict[str, dict[str, str]] = {}
 
+    @property
+    def ctx(self) -> Settings:
+        """The chain's settings (the name scripts use: `chain.ctx.store`)."""
+        return self.settings
+
     def config(self, stage: str) -> Any:
+        """The stage's config, "auto" values decided (`Settings.stage_config`)."""
         if stage not in self._configs:
-            spec = get_stage(stage)
-            section = self.ctx.section(stage, self.sets.get(stage, ()))
-            config = build_config(spec.config_cls, section, stage)
-            # "auto" values: decided from the scene's photos (ptovs.fit), so the
-            # decided value is what the key, the artifact and the log carry
-            self._configs[stage] = fit.resolve(stage, config, self.scene)
+            recipe = self.sets.get(stage, ())
+            self._configs[stage] = self.settings.stage_config(stage, recipe, self.scene)
         return self._configs[stage]
 
     def upstream_keys(self, stage: str) -> dict[str, str]:
@@ -231,7 +158,7 @@ class Chain:
             if spec.extra_key is not None:
                 extra = spec.extra_key(config, self.scene)
                 deps.update({f"extra:{k}": v for k, v in extra.items()})
-            deps.update(model_file_deps(stage, config, self.ctx.work_dir))
+            deps.update(model_file_deps(stage, config, self.settings.work_dir))
             self._deps[stage] = deps
         return dict(self._deps[stage])
 
@@ -248,7 +175,7 @@ class Chain:
     def hint(self, stage: str) -> str:
         """The command that makes `stage`, with the folder the user gave as --data."""
         return (
-            f"ptovs {self.ctx.advice}{stage} --scene {self.scene.name} "
+            f"ptovs {self.settings.advice}{stage} --scene {self.scene.name} "
             f"--data {self.scene.source}"
         )
 
@@ -283,7 +210,7 @@ class Chain:
     def inputs_of(self, stage: str) -> Artifact:
         """The verified artifact of `stage` for this chain, or a MissingInputError."""
         key = self.key(stage)
-        art = self.ctx.store.lookup(self.scene.name, stage, key)
+        art = self.settings.store.lookup(self.scene.name, stage, key)
         if art is None:
             raise MissingInputError(
                 f"no {stage} artifact for {self.scene.name} (key {key[:12]}) with "
@@ -294,7 +221,7 @@ class Chain:
     def _other_configs(self, stage: str) -> str:
         """What the stage's existing artifacts were made with, against this chain's
         config: the overrides to repeat (e.g. after `reconstruct --set ...`)."""
-        others = self.ctx.store.others(self.scene.name, stage, self.key(stage))
+        others = self.settings.store.others(self.scene.name, stage, self.key(stage))
         if not others:
             return ""
         want = json.loads(canonical_json(self.config(stage)))
@@ -324,7 +251,7 @@ class Chain:
         """The stage's own line for `ptovs status` (its headline figures, from the
         done artifact's metrics), or None: not done, no summary, no metrics."""
         spec = get_stage(stage)
-        store, key = self.ctx.store, self.key(stage)
+        store, key = self.settings.store, self.key(stage)
         if spec.summary is None or not store.exists(self.scene.name, stage, key):
             return None
         with Artifact(store.path(self.scene.name, stage, key), verify=False) as art:
@@ -334,7 +261,7 @@ class Chain:
     def state(self, stage: str) -> tuple[str, str]:
         """(state, detail) for `ptovs status`: done, corrupt, partial, missing or
         stale."""
-        store, key = self.ctx.store, self.key(stage)
+        store, key = self.settings.store, self.key(stage)
         if store.exists(self.scene.name, stage, key):
             return "done", str(store.path(self.scene.name, stage, key))
         path = store.path(self.scene.name, stage, key)
@@ -387,7 +314,7 @@ class Chain:
 def execute(chain: Chain, stage: str, *, force: bool = False) -> Artifact:
     """Run one stage for the chain's scene, or return its cached artifact."""
     spec = get_stage(stage)
-    store, scene = chain.ctx.store, chain.scene.name
+    store, scene = chain.settings.store, chain.scene.name
     key = chain.key(stage)
     config = chain.config(stage)
     log.info("%s %s: config %s", stage, key[:12], canonical_json(config))
@@ -494,7 +421,7 @@ def run_stages(
         preflight(chain, stages)
     redo_set = set(force)
     for stage in stages:
-        redo = stage in redo_set or chain.ctx.force
+        redo = stage in redo_set or chain.settings.force
         was = chain.state(stage)[0]
         t0 = time.perf_counter()
         art = execute(chain, stage, force=redo)

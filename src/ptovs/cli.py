@@ -12,11 +12,12 @@ from pathlib import Path
 import click
 
 from ptovs import __version__
-from ptovs.chain import RunContext, run_stages
+from ptovs.chain import run_stages
 from ptovs.errors import InputError, MissingInputError
 from ptovs.locate import resolve_scene
 from ptovs.options import chain_options, scene_options, variant_chain
 from ptovs.registry import EXTRACT_STAGES, STAGE_MODULES, TRAIN_STAGES
+from ptovs.settings import RunContext, resolve_settings
 
 log = logging.getLogger("ptovs")
 
@@ -396,25 +397,25 @@ def _status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:
     click.echo(f"work dir: {Path(obj.work_dir).resolve()}")
 
     name, folder, photos = scene_source(scene_name, data)
-    given = obj.given
-    obj = obj.for_scene(name)  # the config recorded for the scene, without --config
+    # without --config, the config recorded for the scene
+    settings = resolve_settings(obj, name)
     sfm_line = None
     if photos is not None:
-        key, state, posed = pose_photos(obj, name, photos, run=False)
+        key, state, posed = pose_photos(settings, name, photos, run=False)
         if state != "done":
             click.echo(f"scene {name}: {photos} (unposed photos)")
             click.echo(
-                f"  {SFM:<20} {key[:12]}  {state:<8} run: ptovs {obj.advice}sfm "
+                f"  {SFM:<20} {key[:12]}  {state:<8} run: ptovs {settings.advice}sfm "
                 f"--data {folder}"
             )
             return
         sfm_line = f"  {SFM:<20} {key[:12]}  done     {photos}"
         scene_name, data = name, posed  # the posed scene the sfm stage left
-    ref = resolve_scene(obj, scene_name, data)
+    ref = resolve_scene(settings, scene_name, data)
     if sfm_line:
         ref.source = folder  # the advice names the photo folder given, not the copy
     scene = ref.load()
-    chain = Chain(obj, ref)
+    chain = Chain(settings, ref)
     click.echo(f"scene {ref.name}: {ref.data}")
     n_train, n_test = len(scene.train_views()), len(scene.test_views())
     n_lab = sum(v.has_label for v in scene.views)
@@ -423,10 +424,11 @@ def _status(obj: RunContext, scene_name: str | None, data: Path | None) -> None:
         f"{n_lab} labelled), {len(scene.points_xyz)} points, "
         f"downscale r={scene.downscale}"
     )
+    given = obj.given
     if given is not None and not given.files:  # the recorded settings it keys with
         from ptovs.scene_config import history_lines
 
-        for line in history_lines(obj.work_dir, ref.name):
+        for line in history_lines(settings.work_dir, ref.name):
             click.echo(f"  {line}")
     if sfm_line:
         click.echo(sfm_line)

@@ -5,22 +5,24 @@ A scene is a folder under the data folder (`data/<scene>`, or
 `<work>/<scene>/`. A folder that is part of a scene (`dense/`, `images/`, a COLMAP
 model) is refused with the scene folder to pass instead. A folder of unposed
 photos is posed first by the `sfm` stage (`ptovs.sfm`, cached under
-`<work>/<scene>/sfm/`), and the posed scene is what the chain reads.
+`<work>/<scene>/sfm/`), and the posed scene is what the chain reads. The
+`[scene]` and `[sfm]` options come from the scene's resolved settings
+(`ptovs.settings`), which the caller passes down.
 """
 
 from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from pathlib import Path
 
 import click
 
-from ptovs.chain import RunContext, SceneRef
-from ptovs.config import build_config
+from ptovs.chain import SceneRef
 from ptovs.errors import InputError, MissingInputError
-from ptovs.registry import SFM, SceneConfig
+from ptovs.registry import SCENE, SFM
+from ptovs.settings import RunContext, Settings, resolve_settings
 
 log = logging.getLogger(__name__)
 
@@ -101,45 +103,53 @@ def scene_source(
 
 
 def pose_photos(
-    ctx: RunContext, scene_name: str, photos: Path, *, run: bool, force: bool = False
+    settings: Settings, scene_name: str, photos: Path, *, run: bool, force: bool = False
 ) -> tuple[str, str, Path]:
-    """(key, state, posed scene folder) of the `sfm` stage for a photo folder:
-    run (cached, under its lock) if `run`, else only looked up (`ptovs status`)."""
+    """(key, state, posed scene folder) of the `sfm` stage for a photo folder, with
+    the scene's `[sfm]` settings: run (cached, under its lock) if `run`, else only
+    looked up (`ptovs status`)."""
     from ptovs.keys import flush_fingerprints
-    from ptovs.sfm import SfmConfig, posed_scene, sfm_location, sfm_state
+    from ptovs.sfm import posed_scene, sfm_location, sfm_state
 
-    ctx = ctx.for_scene(scene_name)
-    config = build_config(SfmConfig, ctx.section(SFM), SFM)
+    config = settings.build(SFM)
     if not run:
-        return sfm_state(photos, scene_name, ctx.work_dir, config)
-    out = posed_scene(photos, scene_name, ctx.work_dir, config, force=force)
+        return sfm_state(photos, scene_name, settings.work_dir, config)
+    out = posed_scene(photos, scene_name, settings.work_dir, config, force=force)
     flush_fingerprints()  # SfM ran: the scene's config is recorded, as a stage's
-    return sfm_location(photos, scene_name, ctx.work_dir, config)[1], "done", out
+    return sfm_location(photos, scene_name, settings.work_dir, config)[1], "done", out
 
 
-def resolve_scene(
-    ctx: RunContext,
-    scene_name: str | None,
-    data: Path | None,
-    sets: Iterable[str] = (),
-    before_sfm: Callable[[RunContext], None] | None = None,
+def scene_ref(
+    settings: Settings,
+    scene_name: str,
+    data: Path,
+    photos: Path | None,
+    before_sfm: Callable[[Settings], None] | None = None,
 ) -> SceneRef:
-    """The scene a command works on, read with the scene's config (without
-    --config, the one recorded for it: `RunContext.for_scene`). A folder of unposed
-    photos is posed first by the `sfm` stage (cached); `before_sfm(ctx)` runs first
-    when SfM has still to run (the command's preflight checks that need no scene)."""
-    scene_name, data, photos = scene_source(scene_name, data)
-    ctx = ctx.for_scene(scene_name)
+    """The scene `scene_source` found, read with its settings' `[scene]`. A folder
+    of unposed photos is posed first by the `sfm` stage (cached);
+    `before_sfm(settings)` runs first when SfM has still to run (the command's
+    preflight checks that need no scene)."""
     source = data  # what the user gave: advice names it, not the posed copy
     if photos is not None:  # unposed photos: SfM first (cached), then a COLMAP scene
         if before_sfm is not None:
             from ptovs.keys import read_only
 
             with read_only():  # the state lookup writes no cache
-                state = pose_photos(ctx, scene_name, photos, run=False)[1]
+                state = pose_photos(settings, scene_name, photos, run=False)[1]
             if state != "done":
-                before_sfm(ctx)
-        data = pose_photos(ctx, scene_name, photos, run=True)[2]
-    section = ctx.section("scene", sets)
-    config = build_config(SceneConfig, section, "scene")
-    return SceneRef(scene_name, Path(data), config, ctx.work_dir, source)
+                before_sfm(settings)
+        data = pose_photos(settings, scene_name, photos, run=True)[2]
+    return SceneRef(scene_name, Path(data), settings.build(SCENE), settings.work_dir,
+                    source)  # fmt: skip
+
+
+def resolve_scene(
+    ctx: RunContext | Settings, scene_name: str | None, data: Path | None
+) -> SceneRef:
+    """The scene a command works on (`scene_source`), read with its settings
+    (`ctx`'s resolved for it, `ptovs.settings.resolve_settings`, unless `ctx` is
+    them already)."""
+    scene_name, data, photos = scene_source(scene_name, data)
+    settings = ctx if isinstance(ctx, Settings) else resolve_settings(ctx, scene_name)
+    return scene_ref(settings, scene_name, data, photos)

@@ -14,11 +14,12 @@ from typing import Literal
 
 import click
 
-from ptovs.chain import Chain, RunContext, SceneRef
-from ptovs.config import build_config, did_you_mean
-from ptovs.locate import resolve_scene
+from ptovs.chain import Chain, SceneRef
+from ptovs.config import did_you_mean
+from ptovs.locate import scene_ref, scene_source
 from ptovs.pipeline import PIPELINE
-from ptovs.registry import REGISTRY, SCENE, get_stage
+from ptovs.registry import REGISTRY, SCENE
+from ptovs.settings import RunContext, Settings, resolve_settings
 
 
 def scene_options(f: Callable) -> Callable:
@@ -121,9 +122,11 @@ def variant_chain(
     until: str | None = None,
 ) -> tuple[Chain, SceneRef]:
     """The chain of a recipe (`ptovs.variants`) for a scene, with the command's
-    `--set` items (SECTION.KEY=VALUE; KEY=VALUE for `default`'s section). `until`
-    (the last stage the command will run, default `default`) decides what a folder
-    of unposed photos is checked for before SfM poses it."""
+    `--set` items (SECTION.KEY=VALUE; KEY=VALUE for `default`'s section). The
+    scene's settings are resolved once, here (`ptovs.settings.resolve_settings`),
+    and passed down. `until` (the last stage the command will run, default
+    `default`) decides what a folder of unposed photos is checked for before SfM
+    poses it."""
     from ptovs.variants import variant_sets
 
     split = split_sets(sets, (*PIPELINE, *REGISTRY, SCENE), default)
@@ -137,13 +140,13 @@ def variant_chain(
     extract = "extract-features"
     needs = last in PIPELINE and PIPELINE.index(last) >= PIPELINE.index(extract)
 
-    def before_sfm(scene_ctx: RunContext) -> None:  # before SfM's minutes
+    def before_sfm(settings: Settings) -> None:  # before SfM's minutes
         if needs:  # what the features will need
             from ptovs.preflight import check_extract_config
 
-            section = scene_ctx.section(extract, split.get(extract, ()))
-            check_extract_config(build_config(get_stage(extract).config_cls,
-                                              section, extract))  # fmt: skip
+            check_extract_config(settings.build(extract))
 
-    ref = resolve_scene(ctx, scene_name, data, split.pop(SCENE), before_sfm)
-    return Chain(ctx.for_scene(ref.name), ref, variant_sets(variant, split)), ref
+    scene, folder, photos = scene_source(scene_name, data)
+    settings = resolve_settings(ctx, scene, split)
+    ref = scene_ref(settings, scene, folder, photos, before_sfm)
+    return Chain(settings, ref, variant_sets(variant)), ref

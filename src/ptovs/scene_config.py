@@ -246,7 +246,8 @@ def scene_config(
     overrides: dict[str, Any],
 ) -> dict[str, Any]:
     """The config a command uses for one scene: adopted from, or recorded into,
-    `<work>/<scene>/config.json` (`ptovs.chain.RunContext.for_scene`).
+    `<work>/<scene>/config.json` (`ptovs.settings.resolve_settings` calls it
+    once per scene and command).
 
     Args:
         given: the group's --config files and --set items, and the command's own

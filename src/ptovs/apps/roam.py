@@ -29,7 +29,6 @@ import numpy as np
 import torch
 
 from ptovs.apps import close_inputs, trained_chain
-from ptovs.chain import RunContext
 from ptovs.errors import InputError
 from ptovs.options import chain_options
 from ptovs.outputs import (
@@ -40,6 +39,7 @@ from ptovs.outputs import (
     write_text_output,
 )
 from ptovs.raster import Camera
+from ptovs.settings import RunContext
 
 EDGE_BGR = (0, 230, 255)
 FILL_BGR = (40, 80, 255)

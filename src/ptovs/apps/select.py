@@ -22,10 +22,10 @@ from pathlib import Path
 import click
 
 from ptovs.apps import close_inputs, trained_chain
-from ptovs.chain import RunContext
 from ptovs.errors import InputError
 from ptovs.field.query import SelectOptions
 from ptovs.options import chain_options
+from ptovs.settings import RunContext
 
 _DEFAULTS = SelectOptions()
 

@@ -24,10 +24,10 @@ import click
 import numpy as np
 
 from ptovs.apps import close_inputs, trained_chain
-from ptovs.chain import RunContext
 from ptovs.errors import InputError
 from ptovs.field.relevancy import threshold
 from ptovs.options import chain_options
+from ptovs.settings import RunContext
 
 
 def sample_views(scene, n: int, seed: int, which: str = "random") -> list:

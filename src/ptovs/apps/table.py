@@ -19,8 +19,8 @@ from pathlib import Path
 
 import click
 
-from ptovs.chain import RunContext
 from ptovs.pipeline import check_scene_names, scene_folders
+from ptovs.settings import RunContext
 from ptovs.variants import VARIANTS
 
 FAILED_MARKER = "FAILED"

@@ -44,10 +44,10 @@ from ptovs.apps.view_session import (
     plain,
     ready_chain,
 )
-from ptovs.chain import RunContext
 from ptovs.errors import InputError
 from ptovs.options import chain_options
 from ptovs.raster import Camera
+from ptovs.settings import RunContext
 
 __all__ = ["HIGHLIGHT", "NEUTRAL", "Page", "Panel", "ViewSession", "check_port"]
 

@@ -21,10 +21,10 @@ import numpy as np
 import torch
 
 from ptovs.apps import close_inputs
-from ptovs.chain import RunContext
 from ptovs.errors import InputError
 from ptovs.field.model import SH_C0
 from ptovs.raster import Camera
+from ptovs.settings import RunContext
 
 HIGHLIGHT = (1.0, 0.0, 1.0)  # selected Gaussians: magenta, found by the browser test
 NEUTRAL = "neutral (mean of the photos)"
