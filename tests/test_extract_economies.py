@@ -9,6 +9,7 @@ import pytest
 from conftest import RECON, copy_work
 from ptovs.features import SegmentFeatures, view_apps
 from ptovs.segment import NO_SEGMENT, Level
+from ptovs.segment import cut as segcut
 from ptovs.stages import extract_features as ef
 
 
@@ -117,8 +118,8 @@ def test_min_crop_px_drops_exactly_the_small_segments():
     lab[15, 2] = 3  # one pixel
     lab[6, 8:18] = 4  # one row of 10
     level = _level(lab)
-    assert ef.crop_sides(level).tolist() == [30, 3, 9, 1, 10]
-    (out,) = ef.drop_small_segments([level], 9)
+    assert segcut.crop_sides(level).tolist() == [30, 3, 9, 1, 10]
+    (out,) = segcut.drop_small_segments([level], 9)
     assert out.n == 3  # 0, 2 and 4 kept, in their order
     gone = np.isin(lab, [1, 3])
     assert (out.labels[gone] == NO_SEGMENT).all()
@@ -128,12 +129,12 @@ def test_min_crop_px_drops_exactly_the_small_segments():
     f = SegmentFeatures.from_levels([out], [np.eye(3)], 3)
     f.validate()
     # every segment small: the level is empty, and still valid
-    (none,) = ef.drop_small_segments([level], 31)
+    (none,) = segcut.drop_small_segments([level], 31)
     assert none.n == 0 and (none.labels == NO_SEGMENT).all()
     SegmentFeatures.from_levels([none], [np.zeros((0, 3))], 3).validate()
     # 0 (and any size all segments reach) changes nothing
-    assert ef.drop_small_segments([level], 0)[0] is level
-    assert ef.drop_small_segments([level], 1)[0] is level
+    assert segcut.drop_small_segments([level], 0)[0] is level
+    assert segcut.drop_small_segments([level], 1)[0] is level
 
 
 def test_min_crop_px_measures_the_cropped_mask():
@@ -148,8 +149,8 @@ def test_min_crop_px_measures_the_cropped_mask():
     lab[14:16, 14:16] = 2
     masks = [lab == 0, whole, small]
     level = Level(lab, masks)
-    assert ef.crop_sides(level).tolist() == [16, 12, 2]
-    (out,) = ef.drop_small_segments([level], 4)
+    assert segcut.crop_sides(level).tolist() == [16, 12, 2]
+    (out,) = segcut.drop_small_segments([level], 4)
     assert out.n == 2 and len(out.masks) == 2 and out.masks[1] is whole
     assert (out.labels[14:, 14:] == NO_SEGMENT).all()
 
@@ -167,7 +168,7 @@ def test_min_crop_px_in_the_stage(work, tiny_scene_dir):
             for lv in range(f.levels):
                 level = _level(f.local(lv))
                 if level.n:
-                    assert ef.crop_sides(level).min() >= 16
+                    assert segcut.crop_sides(level).min() >= 16
                 # a kept segment is the one it was, its pixels unchanged
                 kept = f.seg[lv] >= 0
                 assert np.array_equal(f.dense(lv)[0][kept], b.dense(lv)[0][kept])

@@ -499,8 +499,8 @@ def test_auto_precision_asks_the_cpu_before_segmenting_a_sample(tmp_path, monkey
 
     from ptovs.artifacts import Notes
     from ptovs.encoders import openclip
+    from ptovs.encoders.decide import decide_precision
     from ptovs.segment import NO_SEGMENT, Level
-    from ptovs.stages.extract_features import decide_precision
 
     segmented: list[int] = []
 
@@ -619,8 +619,8 @@ def test_a_hugging_face_text_tower_never_downloads(tmp_path, monkeypatch):
     import importlib
 
     from ptovs.encoders.openclip import OpenClipEncoder, build_net
+    from ptovs.encoders.openclip_backend import check_openclip
     from ptovs.errors import InputError
-    from ptovs.preflight import check_openclip
 
     oc = _oc()
 
@@ -703,8 +703,8 @@ def test_preflight_runs_a_crop_and_a_phrase(tmp_path, monkeypatch):
     """A checkpoint that fits but a model the wrapper cannot drive (here: its
     Hugging Face tokenizer would be downloaded) fails preflight in one line."""
     from ptovs.encoders.openclip import build_net
+    from ptovs.encoders.openclip_backend import check_openclip
     from ptovs.errors import InputError
-    from ptovs.preflight import check_openclip
 
     name = _tiny_siglip(monkeypatch)
     ckpt = tmp_path / "siglip.pt"
@@ -724,8 +724,8 @@ def test_preflight_refuses_an_ambiguous_model_and_runs_the_precision_used(
     """Before any stage: a model whose tags disagree on QuickGELU, with no tag,
     is refused in one line; the test crop runs in bf16 where bf16 will (or, with
     "auto", may) be used, so a model that fails only in bf16 fails here."""
-    from ptovs import preflight
     from ptovs.encoders import openclip
+    from ptovs.encoders import openclip_backend as preflight
     from ptovs.errors import InputError
 
     some = tmp_path / "any.pt"
@@ -744,7 +744,7 @@ def test_preflight_refuses_an_ambiguous_model_and_runs_the_precision_used(
     monkeypatch.setattr(openclip.OpenClipEncoder, "_fast_model", lambda self: broken())
     preflight.check_openclip(name, ckpt, precision="fp32")
     for fast in (False, True):
-        preflight._openclip_fits.cache_clear()
+        preflight.openclip_fits.cache_clear()
         monkeypatch.setattr(openclip, "bf16_is_fast", lambda *a, f=fast: (f, {}))
         if not fast:
             preflight.check_openclip(name, ckpt, precision="auto")  # fp32 only
@@ -803,7 +803,7 @@ def test_a_torchscript_checkpoint_is_refused_naming_the_state_dict(tmp_path) -> 
     """OpenAI's own ViT-*.pt files are TorchScript archives: never executed, refused
     in one line that names the state dict to take instead; a plain state dict in the
     same zip format still loads."""
-    from ptovs.encoders.openclip import _state_dict
+    from ptovs.encoders.openclip_net import clip_state_dict as _state_dict
 
     net = torch.nn.Linear(2, 2)
     torch.jit.save(torch.jit.script(net), tmp_path / "ViT-B-16.pt")

@@ -25,7 +25,7 @@ def test_a_checkpoint_that_does_not_fit_is_refused_before_anything_runs(
     tiny_scene_dir: Path, tmp_path: Path
 ) -> None:
     from ptovs.encoders.openclip import OpenClipEncoder, register_tiny
-    from ptovs.preflight import check_openclip
+    from ptovs.encoders.openclip_backend import check_openclip
 
     name = register_tiny()
     net = OpenClipEncoder(name, random_weights=True).net
@@ -96,7 +96,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def _checkpoint_table() -> str:
     """The guide's section that every missing-checkpoint error points at (it
     fails here, not in a user's terminal, when the heading is renamed)."""
-    from ptovs.preflight import CHECKPOINT_TABLE
+    from ptovs.encoders.weights import CHECKPOINT_TABLE
 
     page, title = CHECKPOINT_TABLE.split(", ", 1)
     head = f"### {title.strip(chr(39))}\n"
@@ -108,7 +108,12 @@ def _checkpoint_table() -> str:
 def test_a_missing_checkpoint_names_the_file_and_the_guides_table(tmp_path):
     from types import SimpleNamespace
 
-    from ptovs.preflight import CHECKPOINT_TABLE, check_openclip, check_sam_checkpoint
+    from ptovs.encoders.openclip_backend import check_openclip
+    from ptovs.encoders.weights import CHECKPOINT_TABLE
+    from ptovs.segment.backend import get_segmenter_backend
+
+    def check_sam_checkpoint(config):
+        get_segmenter_backend(config.segmenter).check(config)
 
     _checkpoint_table()
     cases = [
@@ -140,7 +145,9 @@ def test_the_shipped_configs_expect_the_files_the_guides_table_names():
     import re
 
     from ptovs.config import load_config
-    from ptovs.preflight import CLIP_FILES, SAM_FILES, _clip_file
+    from ptovs.encoders.openclip_backend import CLIP_FILES
+    from ptovs.encoders.openclip_backend import clip_file as _clip_file
+    from ptovs.segment.sam import SAM_FILES
 
     table = _checkpoint_table()
     paths = []

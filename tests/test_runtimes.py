@@ -197,7 +197,7 @@ def test_on_cuda_pytorch_stays_without_encoding_anything(monkeypatch):
 
 def test_a_resumed_artifact_keeps_its_runtime_and_does_not_measure(tmp_path):
     from ptovs.artifacts import Notes
-    from ptovs.stages.extract_features import decide_runtime
+    from ptovs.encoders.decide import decide_runtime
 
     def sample():
         raise AssertionError("measured again")

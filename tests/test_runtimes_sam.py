@@ -182,34 +182,36 @@ def test_extract_features_keeps_the_segmenters_runtime_for_a_resumed_run(
     segmenter's decision in the partial artifact's notes after its first image,
     and a resumed run's segmenter runs that runtime without measuring again."""
     from ptovs.artifacts import Notes
+    from ptovs.segment import backend as segb
+    from ptovs.segment import sam as sam_module
     from ptovs.stages import extract_features as ef
 
     got = {}
-    monkeypatch.setattr(ef, "get_segmenter", lambda name, **kw: got.update(kw))
+    monkeypatch.setattr(sam_module, "SamSegmenter", lambda **kw: got.update(kw))
     ef.build_segmenter(ef.Config(segmenter="sam", runtime="openvino"))
     assert got["runtime"] == "openvino"
 
     _slower_torch(monkeypatch)
     notes = Notes(tmp_path / "notes", "key")
     first = _sam("auto")
-    ef.restore_segmenter_runtime(first, notes)  # nothing kept yet: decides itself
-    ef.note_segmenter_runtime(first, notes)  # nothing decided yet: nothing kept
+    segb.restore_segmenter_runtime(first, notes)  # nothing kept yet: decides itself
+    segb.note_segmenter_runtime(first, notes)  # nothing decided yet: nothing kept
     assert notes.get("segmenter_runtime") is None
     first.segment(_blocks(48, 64))
-    ef.note_segmenter_runtime(first, notes)
+    segb.note_segmenter_runtime(first, notes)
     kept = notes.get("segmenter_runtime")
     assert kept["runtime"] in NAMED and kept["runtime"] == first.runtime
 
     monkeypatch.setattr(Tower, "check", lambda *a, **k: pytest.fail("measured again"))
     resumed = _sam("auto")
-    ef.restore_segmenter_runtime(resumed, Notes(tmp_path / "notes", "key"))
+    segb.restore_segmenter_runtime(resumed, Notes(tmp_path / "notes", "key"))
     assert resumed.runtime == kept["runtime"] and resumed.runtime_report == kept
     levels = resumed.segment(_blocks(48, 64))
     assert [lv.labels.shape for lv in levels] == [(48, 64)] * 3
     # a segmenter without a runtime (hier, graph) is left as it is
     hier = ef.build_segmenter(ef.Config(segmenter="hier"))
-    ef.restore_segmenter_runtime(hier, Notes(tmp_path / "notes", "key"))
-    ef.note_segmenter_runtime(hier, Notes(tmp_path / "other", "key2"))
+    segb.restore_segmenter_runtime(hier, Notes(tmp_path / "notes", "key"))
+    segb.note_segmenter_runtime(hier, Notes(tmp_path / "other", "key2"))
     assert Notes(tmp_path / "other", "key2").get("segmenter_runtime") is None
 
 

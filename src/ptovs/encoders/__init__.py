@@ -7,6 +7,9 @@ and `prepare_crop` turns an image and a segment mask into the crop it encodes.
     crops = np.stack([prepare_crop(image, m) for m in masks])  # [B, 224, 224, 3]
     feats = enc.encode_images(crops)  # [B, 512] unit rows
     q = enc.encode_texts(["Column", "object"])  # [Q, 512] unit rows
+
+extract-features builds its encoder through the encoder's backend
+(`ptovs.encoders.backend`); the stand-in's, `Standin`, is below.
 """
 
 from __future__ import annotations
@@ -19,6 +22,8 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from ptovs.crop import prepare_crop  # the encoders' input, defined below them
+from ptovs.encoders.backend import EncoderBackend
+from ptovs.errors import MissingInputError
 
 logger = logging.getLogger(__name__)
 
@@ -121,12 +126,42 @@ def get_encoder(name: str, **kwargs) -> Encoder:
     raise ValueError(f"unknown encoder {name!r}; choose from {list(ENCODERS)}")
 
 
+def vocabulary_file(scene_root: str | Path | None) -> Path | None:
+    """A scene's synthetic/vocabulary.json, None where it has none."""
+    if scene_root is None:
+        return None
+    path = Path(scene_root) / "synthetic" / "vocabulary.json"
+    return path if path.is_file() else None
+
+
+class Standin(EncoderBackend):
+    """The stand-in for CLIP of a synthetic scene (docs/standin.md)."""
+
+    name = "synthetic"
+
+    def build(self, config, scene_root: Path | None) -> Encoder:
+        # the image side needs no phrases, only the scene's stand-in version
+        return get_encoder("synthetic", vocabulary=vocabulary_file(scene_root))
+
+    def check_scene(self, config, scene) -> None:
+        """Only a synthetic scene has the vocabulary the stand-in reads."""
+        if not (Path(scene.root) / "synthetic" / "vocabulary.json").is_file():
+            raise MissingInputError(
+                f"encoder 'synthetic' (the stand-in) needs {scene.root}/synthetic/"
+                "vocabulary.json, which only synthetic scenes have; set "
+                'extract-features.encoder = "openclip" and clip_checkpoint for real '
+                "photos"
+            )
+
+
 __all__ = [
     "ENCODERS",
     "Encoder",
+    "Standin",
     "get_encoder",
     "prepare_crop",
     "scene_encoder",
     "standin_version",
     "synthetic_encoder",
+    "vocabulary_file",
 ]

@@ -12,6 +12,10 @@ the view (a photo and a render that agree there) is encoded once. A crop's key i
 the blake2b digest of its pixels, shape and dtype; a row is the encoder's own
 output for those pixels (the batch it came in may differ: rounding of the last
 bit, no more).
+
+Before any crop is cut, `unique_segments` finds the segments of an image's levels
+whose masks are the same (a region no finer level splits), so each is cropped
+and encoded once.
 """
 
 from __future__ import annotations
@@ -65,4 +69,29 @@ class CropMemo:
         self._rows = {k: v for k, v in self._rows.items() if k in self._pinned}
 
 
-__all__ = ["CropMemo"]
+def unique_segments(
+    levels: list,
+) -> tuple[list[tuple[int, int]], dict[tuple[int, int], list[tuple[int, int]]]]:
+    """The (level, id) of each distinct segment mask, first occurrence first,
+    and for each of them every (level, id) with the same mask."""
+    first: dict[bytes, tuple[int, int]] = {}
+    where: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    order: list[tuple[int, int]] = []
+    for lv, level in enumerate(levels):
+        for k in range(level.n):
+            m = np.asarray(level.mask(k), bool)
+            rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+            box = np.array([rows[0], rows[-1], cols[0], cols[-1]], np.int64)
+            inner = m[box[0] : box[1] + 1, box[2] : box[3] + 1]
+            key = hashlib.blake2b(
+                box.tobytes() + np.packbits(inner).tobytes(), digest_size=16
+            ).digest()
+            if key not in first:
+                first[key] = (lv, k)
+                order.append((lv, k))
+                where[(lv, k)] = []
+            where[first[key]].append((lv, k))
+    return order, where
+
+
+__all__ = ["CropMemo", "unique_segments"]

@@ -106,33 +106,6 @@ CHECK_PHRASES = (
 )  # fmt: skip
 
 
-def _state_dict(path: Path) -> dict[str, torch.Tensor]:
-    """A checkpoint's tensors: a `.safetensors` file (as the model hubs ship
-    open_clip weights) or a torch file read with weights_only=True."""
-    path = Path(path)
-    if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
-
-        return {k.removeprefix("module."): v for k, v in load_file(path).items()}
-    import zipfile
-
-    if zipfile.is_zipfile(path):
-        with zipfile.ZipFile(path) as z:  # OpenAI's own .pt files are TorchScript
-            if any(n.endswith("/constants.pkl") for n in z.namelist()):
-                raise ValueError(
-                    f"clip_checkpoint {path} is a TorchScript archive (OpenAI's own "
-                    "ViT-*.pt), which ptovs does not execute; take the same weights "
-                    "as a state dict: the model hub's open_clip_model.safetensors of "
-                    "the tag (docs/guide.md, Checkpoints)"
-                )
-    obj = torch.load(path, map_location="cpu", weights_only=True)
-    if isinstance(obj, dict) and "state_dict" in obj:
-        obj = obj["state_dict"]
-    if not isinstance(obj, dict):
-        raise ValueError(f"clip_checkpoint {path}: not a state dict")
-    return {k.removeprefix("module."): v for k, v in obj.items()}
-
-
 # ------------------------------------------------------------------ bf16 or not
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from ptovs.compat import import_backend
+from ptovs.encoders.weights import read_state_dict
 
 TINY = "ptovs-tiny-test"
 TINY_CONFIG = dict(
@@ -157,6 +158,25 @@ def preprocess_for(model: str, tag: str = "") -> Preprocess:
         size, tuple(map(float, mean)), tuple(map(float, std)), interp, mode,
         tag or (chosen[0] if len(chosen) == 1 else ""), bool(quick_gelu),
     )  # fmt: skip
+
+
+def clip_state_dict(path: str | Path) -> dict[str, Any]:
+    """A checkpoint's tensors (`weights.read_state_dict`: a `.safetensors` file, as
+    the model hubs ship open_clip weights, or a torch file read with
+    weights_only=True); OpenAI's TorchScript archives are refused."""
+    path = Path(path)
+    import zipfile
+
+    if path.suffix != ".safetensors" and zipfile.is_zipfile(path):
+        with zipfile.ZipFile(path) as z:  # OpenAI's own .pt files are TorchScript
+            if any(n.endswith("/constants.pkl") for n in z.namelist()):
+                raise ValueError(
+                    f"clip_checkpoint {path} is a TorchScript archive (OpenAI's own "
+                    "ViT-*.pt), which ptovs does not execute; take the same weights "
+                    "as a state dict: the model hub's open_clip_model.safetensors of "
+                    "the tag (docs/guide.md, Checkpoints)"
+                )
+    return read_state_dict(path, "clip_checkpoint")
 
 
 def hf_text_tower(model: str) -> str:

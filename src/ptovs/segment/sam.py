@@ -15,6 +15,10 @@ tests pass a tiny randomly initialised `Sam` as `model=`.
 ONNX Runtime or OpenVINO (`ptovs.encoders.runtimes`), or "auto": decided on the
 first image (`EncoderRuntime`). The prompt encoder and mask decoder stay in
 PyTorch.
+
+`SamBackend` is how extract-features builds it from its config and preflight
+checks its checkpoint (`ptovs.segment.backend`); SAM 2.1's backend shares its
+checkpoint check (`require_checkpoint`), key and causes.
 """
 
 from __future__ import annotations
@@ -31,6 +35,9 @@ from ptovs.compat import import_backend
 from ptovs.encoders import runtimes
 from ptovs.encoders.runtimes.choose import relative_diff
 from ptovs.encoders.runtimes.tower import Tower
+from ptovs.encoders.weights import read_state_dict, where
+from ptovs.errors import MissingInputError
+from ptovs.segment.backend import SegmenterBackend
 from ptovs.segment.generator import (
     LEVEL_OUTPUTS,
     MaskGenerator,
@@ -39,6 +46,16 @@ from ptovs.segment.generator import (
 )
 
 log = logging.getLogger(__name__)
+
+# segment-anything's sam_model -> Meta's file (dl.fbaipublicfiles.com/segment_anything)
+SAM_FILES = {
+    "vit_h": "sam_vit_h_4b8939.pth",
+    "vit_l": "sam_vit_l_0b3195.pth",
+    "vit_b": "sam_vit_b_01ec64.pth",
+}
+SAM_GENERATOR = "2"
+"""The SAM/SAM 2.1 generator's version: 2 equals upstream's generators mask for mask
+and orders SAM 2.1's outputs by area (its features differ from version 1's)."""
 
 
 def load_sam(checkpoint: str | Path, model_type: str = "vit_h", device: str = "cpu"):
@@ -50,8 +67,7 @@ def load_sam(checkpoint: str | Path, model_type: str = "vit_h", device: str = "c
             f"sam_model {model_type!r}: choose from {sorted(sa.sam_model_registry)}"
         )
     model = sa.sam_model_registry[model_type](checkpoint=None)
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    model.load_state_dict(state)
+    model.load_state_dict(read_state_dict(path))
     return model.to(device).eval()
 
 
@@ -227,6 +243,62 @@ class SamSegmenter(RuntimeOf, MaskGenerator):
         super().__init__(SamPoints(self.predictor), amg, **options)
 
 
+def require_checkpoint(config: Any, what: str, file: str) -> Path:
+    """segmenter "sam" or "sam2": the local `sam_checkpoint`, or a
+    MissingInputError naming `what` it must be and the publisher's `file`."""
+    ckpt = Path(str(config.sam_checkpoint)).expanduser()
+    if not str(config.sam_checkpoint) or not ckpt.is_file():
+        raise MissingInputError(
+            f"segmenter = {config.segmenter!r} needs sam_checkpoint = {what} "
+            f"({str(ckpt) if str(config.sam_checkpoint) else 'none given'}); "
+            "--set extract-features.sam_checkpoint=FILE"
+            + where(file, "Meta" if file else "")
+        )
+    return ckpt
+
+
+class SamBackend(SegmenterBackend):
+    """segment-anything from a local checkpoint (extra [sam])."""
+
+    name = "sam"
+    extra = "sam"
+    model_key = "sam_model"
+    config_keys = ("sam_checkpoint", "sam_model", "sam_points_per_side",
+                   "sam_crop_n_layers", "device", "runtime")  # fmt: skip
+
+    def build(self, config: Any, levels: tuple, scene_root: Path | None) -> Any:
+        return self.segmenter_class()(
+            checkpoint=config.sam_checkpoint,
+            model_type=getattr(config, self.model_key),
+            levels=levels,
+            points_per_side=config.sam_points_per_side,
+            crop_n_layers=config.sam_crop_n_layers,
+            device=config.device,
+            runtime=config.runtime,
+        )
+
+    def segmenter_class(self) -> type:
+        return SamSegmenter
+
+    def check(self, config: Any) -> None:
+        """The checkpoint exists."""
+        file = SAM_FILES.get(str(getattr(config, "sam_model", "")), "")
+        require_checkpoint(config, "a local SAM checkpoint", file)
+
+    def extra_key(self, config: Any) -> dict[str, str]:
+        return {"sam_generator": SAM_GENERATOR}
+
+    def empty_causes(self, config: Any) -> list[str]:
+        model = getattr(config, self.model_key)
+        return [
+            f"a wrong or randomly initialised checkpoint (sam_checkpoint = "
+            f"{config.sam_checkpoint!r} for segmenter {config.segmenter!r}, model "
+            f"{model!r})",
+            f"prompts too sparse (sam_points_per_side = {config.sam_points_per_side}"
+            f", sam_crop_n_layers = {config.sam_crop_n_layers})",
+        ]
+
+
 def tiny_sam(seed: int = 0, img_size: int = 256):
     """A randomly initialised, tiny SAM (for tests; ~0.5 M parameters)."""
     sa = import_backend("segment_anything")
@@ -275,9 +347,13 @@ def tiny_sam(seed: int = 0, img_size: int = 256):
 
 __all__ = [
     "LEVEL_OUTPUTS",
+    "SAM_FILES",
+    "SAM_GENERATOR",
     "EncoderRuntime",
+    "SamBackend",
     "SamPoints",
     "SamSegmenter",
+    "require_checkpoint",
     "load_sam",
     "tiny_sam",
 ]

@@ -24,17 +24,22 @@ automatic mask generator does (its `_transforms` and `_predict`).
 
 The model is built from sam2's own config (`SAM2_MODELS`: tiny, small, base_plus,
 large) on `device` and loaded from a local checkpoint (`sam_checkpoint`; sam2's
-checkpoints hold {"model": state_dict}) with `torch.load(weights_only=True)`;
+checkpoints hold {"model": state_dict}) by `ptovs.encoders.weights.read_state_dict`;
 nothing is downloaded.
 
 `runtime` runs the Hiera image encoder in PyTorch, ONNX Runtime or OpenVINO, or
 "auto" (decided on the first image), as SAM's (`ptovs.segment.sam.EncoderRuntime`):
 its dict output travels through the export as a tuple (`flat_outputs`) and is
 rebuilt (`dict_outputs`).
+
+`Sam2Backend` is how extract-features builds it from its config, and how
+preflight checks that the checkpoint loads and fits `sam2_model` (a SAM 1, SAM
+2.0 or another size's checkpoint is refused, naming its fix).
 """
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 from typing import Any
 
@@ -43,12 +48,14 @@ import torch
 
 from ptovs.compat import import_backend
 from ptovs.encoders import runtimes
+from ptovs.encoders.weights import read_state_dict, readable_state, state_mismatch
+from ptovs.errors import InputError
 from ptovs.segment.generator import (
     MaskGenerator,
     default_points_per_batch,
     local_checkpoint,
 )
-from ptovs.segment.sam import EncoderRuntime, RuntimeOf
+from ptovs.segment.sam import EncoderRuntime, RuntimeOf, SamBackend, require_checkpoint
 
 SAM2_MODELS = {
     "tiny": "sam2.1_hiera_t.yaml",
@@ -101,23 +108,13 @@ def build_sam2_model(model_type: str = "tiny", device: str = "cpu") -> Any:
     return build(f"configs/sam2.1/{SAM2_MODELS[model_type]}", None, device=device)
 
 
-def sam2_state_dict(path: str | Path) -> dict:
-    """The state dict of a sam2 checkpoint ({"model": ...}, or a bare state dict)."""
-    obj = torch.load(Path(path), map_location="cpu", weights_only=True)
-    if isinstance(obj, dict) and isinstance(obj.get("model"), dict):
-        return obj["model"]
-    if not isinstance(obj, dict):
-        raise ValueError(f"{path} holds a {type(obj).__name__}, not a state dict")
-    return obj
-
-
 def load_sam2(
     checkpoint: str | Path, model_type: str = "tiny", device: str = "cpu"
 ) -> Any:
     """Build SAM 2.1 `model_type` and load a local checkpoint (weights_only)."""
     path = local_checkpoint(checkpoint, "sam2", "sam2.1_hiera_tiny.pt")
     model = build_sam2_model(model_type, "cpu")
-    model.load_state_dict(sam2_state_dict(path))
+    model.load_state_dict(read_state_dict(path))
     return model.to(device).eval()
 
 
@@ -209,10 +206,84 @@ class Sam2Segmenter(RuntimeOf, MaskGenerator):
         super().__init__(Sam2Points(self.predictor), amg, **options)
 
 
+@functools.lru_cache(maxsize=4)
+def _sam2_shapes(model: str) -> dict:
+    """{name: shape} of SAM 2.1 `model`'s tensors (built once, randomly)."""
+    return {k: v.shape for k, v in build_sam2_model(model).state_dict().items()}
+
+
+@functools.lru_cache(maxsize=8)
+def _sam2_fits(model: str, path: str, size: int, mtime_ns: int) -> None:
+    """Load the checkpoint the way the segmenter will and compare it with the
+    model's tensors: names, shapes, and none left over (a strict load). A SAM 2.0
+    checkpoint, or SAM 2.1 of another size, is named as such with its fix."""
+    state = readable_state("sam_checkpoint", path)
+    missing, wrong, extra = state_mismatch(state, _sam2_shapes(model), extra=True)
+    if not (missing or wrong or extra):
+        return
+    version, size = sam2_kind(state) or ("", "")
+    if size and (version == "2.0" or size != model):
+        if version == "2.0":  # SAM 2.1 only added SAM21_ONLY's tensors
+            raise InputError(
+                f"sam_checkpoint {path} is a SAM 2.0 {size} checkpoint (it lacks SAM "
+                "2.1's no_obj_embed_spatial and obj_ptr_tpos_proj); ptovs builds SAM "
+                f"2.1: give Meta's sam2.1_hiera_{size}.pt"
+                + (
+                    f" and set extract-features.sam2_model = {size!r}"
+                    if size != model
+                    else ""
+                )
+            )
+        raise InputError(
+            f"sam_checkpoint {path} is a SAM 2.1 {size} checkpoint, not {model}: set "
+            f"extract-features.sam2_model = {size!r} (or give sam2.1_hiera_{model}.pt)"
+        )
+    what = wrong[:2] or missing[:2] or extra[:2]
+    sam1 = any(k.startswith("prompt_encoder.") for k in state)  # SAM 1's names
+    raise InputError(
+        f"sam_checkpoint {path} is not a SAM 2.1 {model} checkpoint: "
+        f"{len(missing)} tensors missing, {len(wrong)} of another shape, "
+        f"{len(extra)} left over (e.g. {what}); give sam2.1_hiera_{model}.pt, "
+        + (
+            "or set extract-features.segmenter = 'sam' (this is a SAM 1 "
+            "checkpoint) and sam_model"
+            if sam1
+            else "or set extract-features.sam2_model to the checkpoint's model"
+        )
+    )
+
+
+class Sam2Backend(SamBackend):
+    """SAM 2.1 from a local checkpoint (extra [sam2]): SAM's recipe and config,
+    with `sam2_model` for `sam_model`."""
+
+    name = "sam2"
+    extra = "sam2"
+    model_key = "sam2_model"
+    config_keys = ("sam_checkpoint", "sam2_model", "sam_points_per_side",
+                   "sam_crop_n_layers", "device", "runtime")  # fmt: skip
+
+    def segmenter_class(self) -> type:
+        return Sam2Segmenter
+
+    def check(self, config: Any) -> None:
+        """`sam2_model` is one, and the checkpoint exists, loads and fits it."""
+        if config.sam2_model not in SAM2_MODELS:
+            raise InputError(
+                f"extract-features.sam2_model {config.sam2_model!r}: choose from "
+                f"{list(SAM2_MODELS)}"
+            )
+        file = f"sam2.1_hiera_{config.sam2_model}.pt"
+        ckpt = require_checkpoint(config, "a local SAM 2.1 checkpoint", file)
+        st = ckpt.stat()
+        _sam2_fits(config.sam2_model, str(ckpt), st.st_size, st.st_mtime_ns)
+
+
 __all__ = [
     "SAM21_ONLY",
     "SAM2_MODELS",
     "SAM2_TRUNKS",
+    "Sam2Backend",
     "Sam2Points",
     "Sam2Segmenter",
     "build_sam2_model",
@@ -220,5 +291,4 @@ __all__ = [
     "flat_outputs",
     "load_sam2",
     "sam2_kind",
-    "sam2_state_dict",
 ]

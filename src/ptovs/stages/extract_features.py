@@ -34,7 +34,9 @@ default), "graph" (one Felzenszwalb pass per level), "sam" (local checkpoint,
 extra [sam]), "sam2" (SAM 2.1, local checkpoint, extra [sam2]) or "truth" (a
 synthetic scene's part masks: the instrument's); encoder "synthetic" (the stand-in;
 the default on synthetic scenes) or "openclip" (any open_clip model from a local
-checkpoint, extra [clip]; the default elsewhere). Or
+checkpoint, extra [clip]; the default elsewhere), each built and checked by its
+backend (`ptovs.segment.backend`, `ptovs.encoders.backend`; the precision and
+runtime decisions: `ptovs.encoders.decide`). Or
 `import_dir`: a LangSplat feature folder (`<id>_f.npy`, `<id>_s.npy`, renders
 `<id>_f_ma_<k>.npy`) used instead of segmenting and encoding.
 """
@@ -42,7 +44,6 @@ checkpoint, extra [clip]; the default elsewhere). Or
 from __future__ import annotations
 
 import functools
-import hashlib
 import logging
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -52,13 +53,23 @@ from typing import Any, Literal
 import numpy as np
 
 from ptovs.artifacts import Artifact, Notes, json_dataset, read_json_dataset
-from ptovs.encoders import Encoder, get_encoder, prepare_crop
-from ptovs.encoders.memo import CropMemo
+from ptovs.encoders import Encoder, prepare_crop, vocabulary_file
+from ptovs.encoders.backend import ENCODER_CHOICES, build_encoder, encoder_spec
+from ptovs.encoders.decide import decide_precision, decide_runtime
+from ptovs.encoders.memo import CropMemo, unique_segments
 from ptovs.errors import UselessOutputError
 from ptovs.features import SegmentFeatures, langsplat_suffix, read_langsplat
 from ptovs.registry import scene_input, upstream
 from ptovs.scene import check_size
-from ptovs.segment import NO_SEGMENT, Level, Segmenter, check_levels, get_segmenter
+from ptovs.segment import Segmenter, check_levels
+from ptovs.segment.backend import (
+    SEGMENTER_CHOICES,
+    build_segmenter,
+    get_segmenter_backend,
+    note_segmenter_runtime,
+    restore_segmenter_runtime,
+)
+from ptovs.segment.cut import Cut, crop_sides, cut_levels
 from ptovs.stage import stage_command
 from ptovs.visual import to_uint8
 
@@ -72,7 +83,7 @@ VERSION = 1
 class Config:
     levels: tuple[Literal["default", "s", "m", "l"], ...] = ("s", "m", "l")
     """Levels, from "default", "s", "m", "l" (LangSplat's four; the paper uses s/m/l)."""
-    segmenter: Literal["graph", "hier", "sam", "sam2", "truth"] = "hier"
+    segmenter: Literal[SEGMENTER_CHOICES] = "hier"
     """"graph": one Felzenszwalb pass per level; "hier": nested levels cut from
     one merge hierarchy over texture features (`ptovs.segment.hier`); "sam": a
     local SAM checkpoint; "sam2": a local SAM 2.1 checkpoint (cheaper on a CPU);
@@ -101,7 +112,7 @@ class Config:
     """SAM's prompt grid, points a side; "auto": one every 64 px of the working
     short side, 8 to 32 (ptovs.fit)."""
     sam_crop_n_layers: int = 1
-    encoder: Literal["auto", "synthetic", "openclip"] = "auto"
+    encoder: Literal[ENCODER_CHOICES] = "auto"
     """"auto": the stand-in on synthetic scenes, OpenCLIP elsewhere."""
     clip_model: str = "ViT-B-16"
     """Any open_clip model name (docs/guide.md, "Real encoders and segmenters")."""
@@ -167,97 +178,6 @@ class Inputs:
     """Not for images = "orig": originals alone depend on the photos, not the field."""
 
 
-def build_segmenter(config: Config, scene_root: Path | None = None) -> Segmenter:
-    levels = check_levels(config.levels)
-    if config.segmenter == "graph":
-        if config.graph_k and len(config.graph_k) != len(levels):
-            raise ValueError(f"graph_k needs one value per level {list(levels)}")
-        k = dict(zip(levels, config.graph_k, strict=True)) if config.graph_k else None
-        return get_segmenter(
-            "graph",
-            levels=levels,
-            k=k,
-            sigma=config.graph_sigma,
-            min_size=config.graph_min_size,
-        )
-    if config.segmenter == "hier":
-        if config.hier_thresholds and len(config.hier_thresholds) != len(levels):
-            raise ValueError(
-                f"hier_thresholds needs one value per level {list(levels)}"
-            )
-        th = config.hier_thresholds
-        return get_segmenter(
-            "hier",
-            levels=levels,
-            thresholds=dict(zip(levels, th, strict=True)) if th else None,
-            texture=config.hier_texture,
-            edge=config.hier_edge,
-            min_size=config.hier_min_size,
-        )
-    if config.segmenter == "truth":
-        if scene_root is None:
-            raise ValueError("segmenter 'truth' needs the scene's folder")
-        from ptovs.segment.truth import TruthSegmenter
-
-        return TruthSegmenter(scene_root, levels)
-    sam2 = config.segmenter == "sam2"
-    return get_segmenter(
-        config.segmenter,
-        checkpoint=config.sam_checkpoint,
-        model_type=config.sam2_model if sam2 else config.sam_model,
-        levels=levels,
-        points_per_side=config.sam_points_per_side,
-        crop_n_layers=config.sam_crop_n_layers,
-        device=config.device,
-        runtime=config.runtime,
-    )
-
-
-def _vocabulary(scene_root: Path | None) -> Path | None:
-    path = (
-        None
-        if scene_root is None
-        else Path(scene_root) / "synthetic" / "vocabulary.json"
-    )
-    return path if path is not None and path.is_file() else None
-
-
-def encoder_spec(config: Config, encoder: Encoder) -> dict:
-    """What query needs to embed texts in the features' space: the encoder's
-    name, and for OpenCLIP the model and checkpoint (recorded in levels_json)."""
-    if encoder.name == "openclip":
-        return {
-            "name": "openclip",
-            "model": config.clip_model,
-            "checkpoint": str(config.clip_checkpoint),
-            "pretrained": config.clip_pretrained,
-            "tokenizer": str(config.clip_tokenizer),
-        }
-    return {"name": encoder.name}
-
-
-def build_encoder(
-    config: Config, synthetic: bool, scene_root: Path | None = None
-) -> Encoder:
-    name = config.encoder
-    if name == "auto":
-        name = "synthetic" if synthetic else "openclip"
-    if name == "synthetic":
-        # the image side needs no phrases, only the scene's stand-in version
-        return get_encoder("synthetic", vocabulary=_vocabulary(scene_root))
-    return get_encoder(
-        "openclip",
-        model=config.clip_model,
-        checkpoint=config.clip_checkpoint,
-        device=config.device,
-        batch_size=config.batch_size,
-        pretrained=config.clip_pretrained,
-        tokenizer=config.clip_tokenizer,
-        precision=config.precision,
-        runtime=config.runtime,
-    )
-
-
 def crop_side(config: Config, encoder: Encoder) -> int:
     """The crop side: config.crop_size, or the encoder's own input size."""
     return int(config.crop_size or getattr(encoder, "size", 224))
@@ -308,196 +228,6 @@ def encode_levels(
     return SegmentFeatures.from_levels(levels, feats, encoder.dim)
 
 
-def unique_segments(
-    levels: list,
-) -> tuple[list[tuple[int, int]], dict[tuple[int, int], list[tuple[int, int]]]]:
-    """The (level, id) of each distinct segment mask, first occurrence first,
-    and for each of them every (level, id) with the same mask."""
-    first: dict[bytes, tuple[int, int]] = {}
-    where: dict[tuple[int, int], list[tuple[int, int]]] = {}
-    order: list[tuple[int, int]] = []
-    for lv, level in enumerate(levels):
-        for k in range(level.n):
-            m = np.asarray(level.mask(k), bool)
-            rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
-            box = np.array([rows[0], rows[-1], cols[0], cols[-1]], np.int64)
-            inner = m[box[0] : box[1] + 1, box[2] : box[3] + 1]
-            key = hashlib.blake2b(
-                box.tobytes() + np.packbits(inner).tobytes(), digest_size=16
-            ).digest()
-            if key not in first:
-                first[key] = (lv, k)
-                order.append((lv, k))
-                where[(lv, k)] = []
-            where[first[key]].append((lv, k))
-    return order, where
-
-
-def precision_sample(
-    image: np.ndarray,
-    levels: list,
-    crop_size: int,
-    n: int = 48,
-    resample: str | None = None,
-) -> np.ndarray:
-    """Up to n crops of one image's distinct segments, evenly spread over them
-    (the sample `precision = "auto"` checks the reduced-precision tower on)."""
-    order, _ = unique_segments(levels)
-    if not order:
-        return np.zeros((0, crop_size, crop_size, 3), np.float32)
-    pick = np.unique(np.linspace(0, len(order) - 1, min(n, len(order))).astype(int))
-    return np.stack(
-        [prepare_crop(image, levels[order[i][0]].mask(order[i][1]), crop_size,
-                      resample=resample)
-         for i in pick]
-    )  # fmt: skip
-
-
-def check_precision(encoder: Encoder, levels: list, image, crop_size: int):
-    """Run the encoder's precision check on a sample of the crops of `image`
-    (segmented as `levels`), when it asks for one (OpenCLIP with precision
-    "auto"); None otherwise."""
-    if getattr(encoder, "precision_wanted", None) != "auto":
-        return None
-    sample = precision_sample(
-        image, levels, crop_size, resample=getattr(encoder, "resample", None)
-    )
-    if not len(sample):
-        log.info("precision: no segments to check on; keeping fp32")
-        return {"precision": "fp32", "checked": "bf16", "crops": 0}
-    report = encoder.check_precision(sample)
-    if "worst_centred_cosine" in report:
-        log.info(
-            "precision: %s (bf16 vs fp32 on %d crops: worst centred cosine %.4f, "
-            "top-1 agreement %.3f; bar %.3f / %.2f)%s",
-            report["precision"], report["crops"], report["worst_centred_cosine"],
-            report["top1_agreement"], report["bar"]["worst_centred_cosine"],
-            report["bar"]["top1_agreement"],
-            "" if report["precision"] == "bf16" else ": bf16 disagrees, fp32 kept",
-        )  # fmt: skip
-    else:  # a check that did not compare (e.g. bf16 not faster here)
-        log.info("precision: %s (%s)", report["precision"], report)
-    return report
-
-
-def _probe_words(probe: dict) -> str:
-    """`bf16_is_fast`'s evidence in a few words, for the log."""
-    if probe.get("device") == "cuda":
-        return "no bf16 on this CUDA device"
-    if probe.get("probe"):
-        return (f"a bf16 matmul of width {probe['probe']['width']} ran "
-                f"{probe['probe']['speedup']:.2f}x fp32's speed")  # fmt: skip
-    found = probe.get("bf16_flags") or []
-    if not found:
-        return f"no bf16 instructions (CPU capability {probe.get('capability')})"
-    return f"bf16 flags {', '.join(found)} on {probe.get('device')}"
-
-
-def decide_precision(
-    encoder: Encoder,
-    notes: Notes | None,
-    sample: Callable[[], tuple[list, np.ndarray]],
-    crop_size: int,
-) -> dict | None:
-    """The precision report of this artifact, and the encoder set to it.
-
-    Made once per artifact: stored in `notes` before the first view is written
-    and read back by a resumed run, which does not check again (another CPU's
-    floats could choose otherwise and mix bf16 and fp32 rows in one artifact).
-    `sample()` gives the (levels, image) the check crops; it is called only
-    where bf16 may be faster (`precision_without_sample`, where the encoder has
-    it: no bf16 instructions on this CPU is fp32 without segmenting anything).
-    None when the encoder asks for no check (precision fp32 or bf16 given, or not
-    OpenCLIP)."""
-    if getattr(encoder, "precision_wanted", None) != "auto":
-        return None
-    report = None if notes is None else notes.get("precision")
-    if report is not None:
-        log.info(
-            "precision: %s, as chosen when this artifact was begun (not checked again)",
-            report["precision"],
-        )
-    else:
-        quick = getattr(encoder, "precision_without_sample", None)
-        report = quick() if quick is not None else None
-        if report is not None:
-            log.info("precision: %s (%s: %s; nothing sampled)", report["precision"],
-                     report["reason"], _probe_words(report["bf16_probe"]))  # fmt: skip
-        else:
-            levels, image = sample()
-            report = check_precision(encoder, levels, image, crop_size)
-        if notes is not None:
-            notes.put("precision", report)
-    encoder.precision = report["precision"]
-    return report
-
-
-def decide_runtime(
-    encoder: Encoder,
-    notes: Notes | None,
-    sample: Callable[[], tuple[list, np.ndarray]],
-    crop_size: int,
-) -> dict | None:
-    """The runtime report of this artifact, and the encoder set to it.
-
-    Made once per artifact, as the precision is: kept in `notes` before the first
-    view is written, so a resumed run uses the same runtime (one artifact never
-    mixes two runtimes' rows; a runtime no longer installed is refused in one line).
-    A named runtime is used as it is. "auto" encodes a sample only where a runtime
-    besides PyTorch is installed and can win on this device
-    (`runtime_without_sample`). None for an encoder with no runtime (the stand-in)."""
-    wanted = getattr(encoder, "runtime_wanted", None)
-    if wanted is None:
-        return None
-    report = None if notes is None else notes.get("runtime")
-    if report is not None:
-        encoder.tower.use(report["runtime"])
-        if report["runtime"] != "torch":
-            encoder.precision = "fp32"  # a runtime's rows are fp32
-        log.info("runtime: %s, as chosen when this artifact was begun (not "
-                 "measured again)", report["runtime"])  # fmt: skip
-        return report
-    if wanted != "auto":
-        report = {"runtime": wanted, "reason": "asked for"}
-        if wanted != "torch":
-            encoder.precision = "fp32"
-    else:
-        report = encoder.runtime_without_sample()
-        if report is None:
-            levels, image = sample()
-            crops = precision_sample(image, levels, crop_size,
-                                     resample=getattr(encoder, "resample", None))  # fmt: skip
-            report = encoder.check_runtime(crops)
-    report["precision"] = encoder.precision  # what the rows are computed in
-    log.info("extract-features: runtime = %s (%s: %s)", encoder.runtime,
-             wanted, report["reason"])  # fmt: skip
-    if notes is not None:
-        notes.put("runtime", report)
-    return report
-
-
-def restore_segmenter_runtime(segmenter: Segmenter, notes: Notes | None) -> bool:
-    """A resumed run's SAM-class segmenter runs its image encoder in the runtime
-    its artifact was begun with (kept in `notes`), not deciding again. True where
-    a decision was kept (nothing more to note)."""
-    report = None if notes is None else notes.get("segmenter_runtime")
-    if report is not None and hasattr(segmenter, "use_runtime"):
-        segmenter.use_runtime(report)
-        log.info("segmenter runtime: %s, as chosen when this artifact was begun "
-                 "(not measured again)", report["runtime"])  # fmt: skip
-    return report is not None
-
-
-def note_segmenter_runtime(segmenter: Segmenter, notes: Notes | None) -> bool:
-    """Keep a SAM-class segmenter's runtime decision (made on its first image) in
-    `notes` before a view of its is written. True once kept."""
-    report = getattr(segmenter, "runtime_report", None)
-    if report is None or notes is None:
-        return False
-    notes.put("segmenter_runtime", report)
-    return True
-
-
 EMPTY_FIRST = 3
 """Stop when each of the first this many views has no segment at all."""
 EMPTY_AFTER = 5
@@ -519,104 +249,12 @@ def too_many_empty(empty: int, finished: int, total: int) -> bool:
 
 def empty_causes(config: Config, shape: tuple[int, int]) -> str:
     """The likely causes of a segmenter finding nothing, with the config keys
-    to look at (one line, for the error)."""
-    seg = config.segmenter
-    if seg in ("sam", "sam2"):
-        model = config.sam2_model if seg == "sam2" else config.sam_model
-        causes = [
-            f"a wrong or randomly initialised checkpoint (sam_checkpoint = "
-            f"{config.sam_checkpoint!r} for segmenter {seg!r}, model {model!r})",
-            f"prompts too sparse (sam_points_per_side = {config.sam_points_per_side}"
-            f", sam_crop_n_layers = {config.sam_crop_n_layers})",
-        ]
-    elif seg == "hier":
-        causes = [
-            "thresholds too strict (hier_thresholds, hier_min_size = "
-            f"{config.hier_min_size})"
-        ]
-    elif seg == "graph":
-        causes = [
-            f"thresholds too strict (graph_k, graph_min_size = {config.graph_min_size})"
-        ]
-    else:
-        causes = ["part masks missing from the scene's folder"]
+    to look at (one line, for the error): the segmenter's own, then these."""
+    causes = get_segmenter_backend(config.segmenter).empty_causes(config)
     if config.min_crop_px > 0:
         causes.append(f"min_crop_px = {config.min_crop_px} leaving out every segment")
     causes.append(f"images too small ({shape[1]}x{shape[0]} px; see scene.downscale)")
     return "; ".join(causes)
-
-
-def crop_sides(level: Level) -> np.ndarray:
-    """[n] the longer side of each segment's crop box (of `level.mask(k)`, the
-    pixels `prepare_crop` cuts out, its box inclusive), in pixels."""
-    if level.masks is None:
-        lab = level.labels
-        n = level.n
-        ys, xs = np.nonzero(lab >= 0)
-        ids = lab[ys, xs]
-        y0 = np.full(n, np.iinfo(np.int64).max)
-        x0 = y0.copy()
-        y1 = np.full(n, -1)
-        x1 = y1.copy()
-        np.minimum.at(y0, ids, ys)
-        np.minimum.at(x0, ids, xs)
-        np.maximum.at(y1, ids, ys)
-        np.maximum.at(x1, ids, xs)
-        return np.maximum(y1 - y0, x1 - x0) + 1
-    sides = []
-    for m in level.masks:
-        rows = np.flatnonzero(m.any(axis=1))
-        cols = np.flatnonzero(m.any(axis=0))
-        sides.append(max(rows[-1] - rows[0], cols[-1] - cols[0]) + 1)
-    return np.array(sides, np.int64)
-
-
-def drop_small_segments(levels: list[Level], min_crop_px: int) -> list[Level]:
-    """Each level without the segments whose crop's longer side is under
-    `min_crop_px` (`crop_sides`): their pixels become NO_SEGMENT and the rest are
-    renumbered 0..n'-1 in their order. 0 returns `levels` unchanged."""
-    if min_crop_px <= 0:
-        return levels
-    out = []
-    for level in levels:
-        keep = crop_sides(level) >= min_crop_px
-        if keep.all():
-            out.append(level)
-            continue
-        new = np.where(keep, np.cumsum(keep) - 1, NO_SEGMENT).astype(np.int32)
-        lab = level.labels
-        labels = np.where(lab >= 0, new[np.maximum(lab, 0)], NO_SEGMENT)
-        masks = None
-        if level.masks is not None:
-            masks = [m for m, k in zip(level.masks, keep, strict=True) if k]
-        out.append(Level(labels.astype(np.int32), masks))
-    return out
-
-
-class _Cut:
-    """A segmenter that hands back levels already cut (by `_cut_levels`), so that
-    `image_features` crops and encodes an image with them."""
-
-    name = "cut"
-
-    def __init__(self, names: tuple[str, ...], levels: list[Level]):
-        self.levels = names
-        self._cut = levels
-
-    def segment(self, image: np.ndarray) -> list[Level]:
-        shape = self._cut[0].labels.shape if self._cut else image.shape[:2]
-        if image.shape[:2] != shape:
-            raise ValueError(f"image {image.shape[:2]} is not the segments' {shape}")
-        return self._cut
-
-
-def _cut_levels(
-    segmenter: Segmenter, stem: str, app: str, image: np.ndarray, min_crop_px: int
-) -> list[Level]:
-    """Segment the image `app` of view `stem`, small segments left out."""
-    if hasattr(segmenter, "select"):  # truth: this view, occluders or not
-        segmenter.select(stem, app == "orig")
-    return drop_small_segments(segmenter.segment(image), min_crop_px)
 
 
 def run(
@@ -653,7 +291,7 @@ def run(
         def first_view() -> tuple[list, np.ndarray]:
             v0 = views[0]  # the same sample whatever was skipped
             img0 = to_uint8(scene.load_image(v0))
-            cut0 = _cut_levels(segmenter, v0.stem, "orig", img0, config.min_crop_px)
+            cut0 = cut_levels(segmenter, v0.stem, "orig", img0, config.min_crop_px)
             return cut0, img0
 
         precision = decide_precision(encoder, notes, first_view, side)
@@ -691,7 +329,7 @@ def run(
 
         shared = None  # the view's segments, cut once
         if not importing and config.segment == "once":
-            shared = _cut_levels(
+            shared = cut_levels(
                 segmenter, v.stem, source, image(source), config.min_crop_px
             )
         out: dict[str, np.ndarray] = {}
@@ -704,10 +342,10 @@ def run(
                 img = image(app)
                 cut = shared
                 if cut is None:
-                    cut = _cut_levels(segmenter, v.stem, app, img, config.min_crop_px)
+                    cut = cut_levels(segmenter, v.stem, app, img, config.min_crop_px)
                 found = found or any(lv.n > 0 for lv in cut)
                 f = image_features(
-                    img, _Cut(levels, cut), encoder, config.batch_size, side
+                    img, Cut(levels, cut), encoder, config.batch_size, side
                 )
             f.validate(f"{v.name} {app}")
             out.update(f.datasets(app))
@@ -794,12 +432,12 @@ def _probe_views(
     for v in views[::step][:PROBE_VIEWS]:
         rgb = renders[v.name]["rgb"]
         own = rgb[slots.index("self")]
-        cut = _cut_levels(segmenter, v.stem, "self", own, config.min_crop_px)
+        cut = cut_levels(segmenter, v.stem, "self", own, config.min_crop_px)
         if not any(lv.n > 0 for lv in cut):
             continue
-        shared = _Cut(check_levels(config.levels), cut)
+        shared = Cut(check_levels(config.levels), cut)
 
-        def table(img: np.ndarray, shared: _Cut = shared) -> np.ndarray:
+        def table(img: np.ndarray, shared: Cut = shared) -> np.ndarray:
             f = image_features(img, shared, encoder, config.batch_size, side)
             return np.asarray(f.table, np.float32)
 
@@ -853,24 +491,17 @@ def _count(inputs: Inputs, config: Config) -> int:
     return len(inputs.scene.train_views())
 
 
-SAM_GENERATOR = "2"
-"""The SAM/SAM 2.1 generator's version: 2 equals upstream's generators mask for mask
-and orders SAM 2.1's outputs by area (its features differ from version 1's)."""
-
-
 def extra_key(config: Config, scene_ref) -> dict[str, str]:
     """What besides the config keys the features: the SAM generator's version for
     segmenter sam/sam2 (so the other segmenters keep their keys), and the stand-in
     version of a scene written for version 5 (version 1 scenes keep the keys they
     always had)."""
-    out = (
-        {"sam_generator": SAM_GENERATOR}
-        if config.segmenter in ("sam", "sam2") and not config.import_dir
-        else {}
-    )
+    out = {}
+    if not config.import_dir:
+        out = get_segmenter_backend(config.segmenter).extra_key(config)
     if config.encoder not in ("auto", "synthetic"):
         return out
-    path = _vocabulary(scene_ref.load().root)
+    path = vocabulary_file(scene_ref.load().root)
     if path is None:
         return out
     import json
@@ -885,21 +516,22 @@ command = stage_command(
     NAME, VERSION, Config, Inputs, run, count=_count, extra_key=extra_key
 )
 
+# build_encoder/build_segmenter are the backends' (`ptovs.encoders.backend`,
+# `ptovs.segment.backend`), named here as `run` calls them; crop_sides
+# (`ptovs.segment.cut`) and unique_segments (`ptovs.encoders.memo`) for bench/
 __all__ = [
     "EMPTY_AFTER",
     "EMPTY_FIRST",
     "Config",
     "Inputs",
     "build_encoder",
-    "encoder_spec",
     "build_segmenter",
     "command",
     "crop_sides",
-    "decide_precision",
-    "decide_runtime",
-    "drop_small_segments",
     "encode_levels",
+    "extra_key",
     "image_features",
     "run",
     "too_many_empty",
+    "unique_segments",
 ]
