@@ -187,8 +187,9 @@ def test_extract_features_keeps_the_segmenters_runtime_for_a_resumed_run(
     from ptovs.stages import extract_features as ef
 
     got = {}
-    monkeypatch.setattr(sam_module, "SamSegmenter", lambda **kw: got.update(kw))
-    ef.build_segmenter(ef.Config(segmenter="sam", runtime="openvino"))
+    with monkeypatch.context() as m:
+        m.setattr(sam_module, "SamSegmenter", lambda **kw: got.update(kw))
+        ef.build_segmenter(ef.Config(segmenter="sam", runtime="openvino"))
     assert got["runtime"] == "openvino"
 
     _slower_torch(monkeypatch)
