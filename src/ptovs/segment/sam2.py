@@ -1,7 +1,7 @@
 """SAM 2.1 as a multi-level segmenter: the same recipe as `ptovs.segment.sam`
 (LangSplat's thresholds and SAM-1 clean-up, LangSplat's mask NMS) with SAM 2.1's
 hierarchical (Hiera) image encoder, which is cheaper than SAM's ViT on a CPU
-(bench/segmenters.py).
+(docs/results.md, "Encoders and segmenters").
 
 Levels: SAM 2.1's mask decoder returns its mask tokens 1..3 for a multimask
 prompt (`MaskDecoder.forward`: `masks[:, 1:]`), three learned slots that nothing

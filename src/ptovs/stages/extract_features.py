@@ -69,7 +69,7 @@ from ptovs.segment.backend import (
     note_segmenter_runtime,
     restore_segmenter_runtime,
 )
-from ptovs.segment.cut import Cut, crop_sides, cut_levels
+from ptovs.segment.cut import Cut, cut_levels
 from ptovs.stage import stage_command
 from ptovs.visual import to_uint8
 
@@ -517,8 +517,7 @@ command = stage_command(
 )
 
 # build_encoder/build_segmenter are the backends' (`ptovs.encoders.backend`,
-# `ptovs.segment.backend`), named here as `run` calls them; crop_sides
-# (`ptovs.segment.cut`) and unique_segments (`ptovs.encoders.memo`) for bench/
+# `ptovs.segment.backend`), named here as `run` calls them
 __all__ = [
     "EMPTY_AFTER",
     "EMPTY_FIRST",
@@ -527,11 +526,9 @@ __all__ = [
     "build_encoder",
     "build_segmenter",
     "command",
-    "crop_sides",
     "encode_levels",
     "extra_key",
     "image_features",
     "run",
     "too_many_empty",
-    "unique_segments",
 ]
