@@ -12,7 +12,7 @@ A stage's `run` (`ptovs.stage` says what a stage module defines) is called as:
   whole-scene datasets); if `run` takes a `skip` keyword, views already stored by
   an interrupted run are passed in and must not be yielded again;
 - single stages return `{dataset: array}`;
-- either kind may take a `ckpt` keyword: a `ptovs.artifacts.Checkpoint` whose
+- either kind may take a `ckpt` keyword: a `ptovs.checkpoint.Checkpoint` whose
   `load()` gives the state saved by an interrupted run (or None) and whose
   `save(state)` stores one atomically. Long training stages call `save` every N
   iterations, so a killed run resumes from its last checkpoint; the chain deletes
